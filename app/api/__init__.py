@@ -1,0 +1,1 @@
+"""HTTP routers: they speak HTTP only and leave decisions to the services."""

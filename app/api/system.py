@@ -1,0 +1,47 @@
+"""Liveness, readiness and Prometheus metrics (no authentication)."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Request
+from fastapi.responses import Response
+from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+from sqlalchemy import text
+from starlette.concurrency import run_in_threadpool
+
+from app.errors import json_response
+from app.migrate import current_revision, head_revision
+
+router = APIRouter(tags=["system"])
+
+
+@router.get("/healthz")
+async def healthz() -> dict[str, str]:
+    """The process is up."""
+    return {"status": "ok"}
+
+
+@router.get("/readyz", responses={503: {"description": "Not ready"}})
+async def readyz(request: Request) -> Response:
+    """The database answers, its schema is at the head migration and the kernels are warm."""
+    state = request.app.state
+
+    def _check() -> dict[str, object]:
+        try:
+            with state.db.engine.connect() as conn:
+                conn.execute(text("SELECT 1"))
+            rev = current_revision(state.db.engine)
+        except Exception as exc:  # any failure to reach the database means not ready
+            return {"database": f"unreachable: {type(exc).__name__}"}
+        head = head_revision(state.db.url)
+        return {"database": "ok", "schema": "ok" if rev == head else f"at {rev}, head is {head}"}
+
+    checks = await run_in_threadpool(_check)
+    checks["kernels"] = "ok" if state.kernels_warm.is_set() else "warming"
+    ok = all(v == "ok" for v in checks.values())
+    return json_response({"status": "ok" if ok else "not ready", "checks": checks}, status_code=200 if ok else 503)
+
+
+@router.get("/metrics", response_class=Response)
+async def metrics() -> Response:
+    """Prometheus text exposition."""
+    return Response(generate_latest(), media_type=CONTENT_TYPE_LATEST)

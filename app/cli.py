@@ -1,0 +1,189 @@
+"""The ``fleethealth`` command."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import threading
+import time
+from pathlib import Path
+
+DEMO_OPERATOR = "demo"
+
+
+def _settings():  # type: ignore[no-untyped-def]
+    from app.config import Settings
+
+    return Settings()
+
+
+def cmd_migrate(args: argparse.Namespace) -> int:
+    from app.migrate import upgrade
+
+    s = _settings()
+    upgrade(s.database_url)
+    print(f"database at head: {s.database_url}")
+    return 0
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from app.main import create_app
+    from app.migrate import upgrade
+
+    s = _settings()
+    host = args.host or s.host
+    port = args.port or s.port
+    if not args.no_migrate:
+        upgrade(s.database_url)
+    url = f"http://{host}:{port}"
+    stop = threading.Event()
+    if args.demo:
+        from app.db import Database
+        from app.security import SCOPES, create_key, ensure_key
+
+        db = Database(s.database_url)
+        with db.write() as session:
+            if s.bootstrap_admin_key:
+                key = s.bootstrap_admin_key
+                ensure_key(session, s.bootstrap_operator, key, list(SCOPES), name="bootstrap")
+            else:
+                _, key = create_key(session, DEMO_OPERATOR, list(SCOPES), name="demo")
+        db.dispose()
+        print(f"\n  fleethealth demo: {url}\n  API docs:        {url}/docs\n  demo API key:    {key}\n"
+              f"  try: curl -H 'Authorization: Bearer {key}' {url}/v1/fleet/health\n", flush=True)
+        threading.Thread(target=_demo_feeder, args=(url, key, stop), daemon=True).start()
+    else:
+        print(f"fleethealth serving on {url} (API docs at {url}/docs)", flush=True)
+    try:
+        uvicorn.run(create_app(s), host=host, port=port, log_level=args.log_level)
+    finally:
+        stop.set()
+    return 0
+
+
+def _demo_feeder(url: str, key: str, stop: threading.Event) -> None:
+    import httpx
+
+    from app.tools.simulate import run_simulation
+
+    deadline = time.monotonic() + 120
+    while not stop.is_set() and time.monotonic() < deadline:
+        try:
+            if httpx.get(f"{url}/readyz", timeout=2).status_code == 200:
+                break
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.5)
+    try:
+        run_simulation(url, key, stop_event=stop)
+    except Exception as exc:  # the demo feeder must never take the server down
+        print(f"demo simulator stopped: {exc}", file=sys.stderr)
+
+
+def cmd_keys(args: argparse.Namespace) -> int:
+    from sqlalchemy import select
+
+    from app.db import Database
+    from app.models import ApiKey, Operator, utcnow
+    from app.security import create_key, parse_scopes
+
+    db = Database(_settings().database_url)
+    try:
+        if args.keys_cmd == "create":
+            with db.write() as s:
+                row, plaintext = create_key(s, args.operator, parse_scopes(args.scopes), name=args.name)
+                print(plaintext)
+                print(f"created key {row.id} ({row.prefix}...) for operator {args.operator!r} "
+                      f"with scopes {row.scopes}", file=sys.stderr)
+        elif args.keys_cmd == "list":
+            with db.read() as s:
+                for key, op in s.execute(
+                    select(ApiKey, Operator.name).join(Operator).order_by(ApiKey.id)
+                ):
+                    state = "revoked" if key.revoked_at else "active"
+                    print(f"{key.id}\t{op}\t{key.prefix}...\t{key.scopes}\t{state}\t{key.name}")
+        elif args.keys_cmd == "revoke":
+            with db.write() as s:
+                key = s.get(ApiKey, args.id)
+                if key is None:
+                    print(f"no key {args.id}", file=sys.stderr)
+                    return 1
+                key.revoked_at = utcnow()
+                print(f"revoked key {args.id}")
+    finally:
+        db.dispose()
+    return 0
+
+
+def openapi_document() -> dict:  # type: ignore[type-arg]
+    from app.config import Settings
+    from app.main import create_app
+
+    return create_app(Settings(database_url="sqlite://")).openapi()
+
+
+def cmd_export_openapi(args: argparse.Namespace) -> int:
+    text = json.dumps(openapi_document(), indent=2, sort_keys=True) + "\n"
+    if args.output == "-":
+        sys.stdout.write(text)
+    else:
+        Path(args.output).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.output).write_text(text)
+        print(f"wrote {args.output}", file=sys.stderr)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="fleethealth", description=__doc__)
+    sub = p.add_subparsers(dest="cmd", required=True)
+
+    sp = sub.add_parser("serve", help="apply migrations and serve the API")
+    sp.add_argument("--host", default=None, help="default: FLEETHEALTH_HOST or 127.0.0.1")
+    sp.add_argument("--port", type=int, default=None, help="default: FLEETHEALTH_PORT or 8000")
+    sp.add_argument("--demo", action="store_true", help="also feed a simulated demo fleet")
+    sp.add_argument("--no-migrate", action="store_true", help="do not apply migrations first")
+    sp.add_argument("--log-level", default="info")
+    sp.set_defaults(func=cmd_serve)
+
+    sp = sub.add_parser("migrate", help="apply database migrations up to head")
+    sp.set_defaults(func=cmd_migrate)
+
+    sp = sub.add_parser("keys", help="manage API keys")
+    ks = sp.add_subparsers(dest="keys_cmd", required=True)
+    kc = ks.add_parser("create", help="create a key and print it (once)")
+    kc.add_argument("--operator", required=True)
+    kc.add_argument("--scopes", default="ingest,read", help="comma-separated: ingest,read,admin")
+    kc.add_argument("--name", default="")
+    ks.add_parser("list", help="list keys (never the keys themselves)")
+    kr = ks.add_parser("revoke", help="revoke a key by id")
+    kr.add_argument("id", type=int)
+    sp.set_defaults(func=cmd_keys)
+
+    sp = sub.add_parser("export-openapi", help="write the OpenAPI document")
+    sp.add_argument("--output", "-o", default="openapi/openapi.json", help="file, or - for stdout")
+    sp.set_defaults(func=cmd_export_openapi)
+
+    from app.tools import replay, simulate
+
+    sp = sub.add_parser("simulate", help="feed a running server with a simulated fleet")
+    simulate.add_arguments(sp)
+    sp.set_defaults(func=simulate.run)
+
+    sp = sub.add_parser("replay", help="send recorded files (e.g. FLEA runs) to a running server")
+    replay.add_arguments(sp)
+    sp.set_defaults(func=replay.run)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    os.environ.setdefault("PYTHONUNBUFFERED", "1")
+    args = build_parser().parse_args(argv)
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,27 @@
+"""Compact binary form of column blocks (telemetry log payloads and per-sample outputs):
+an Arrow IPC stream with zstd-compressed float64 buffers."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+import pyarrow as pa
+
+_WRITE_OPTIONS = pa.ipc.IpcWriteOptions(compression="zstd")
+
+
+def encode_columns(columns: Mapping[str, np.ndarray]) -> bytes:
+    table = pa.table({name: pa.array(np.asarray(col, dtype=np.float64)) for name, col in columns.items()})
+    sink = pa.BufferOutputStream()
+    with pa.ipc.new_stream(sink, table.schema, options=_WRITE_OPTIONS) as writer:
+        writer.write_table(table)
+    return sink.getvalue().to_pybytes()
+
+
+def decode_columns(data: bytes) -> dict[str, np.ndarray]:
+    table = pa.ipc.open_stream(pa.py_buffer(data)).read_all()
+    return {
+        name: table.column(name).to_numpy().astype(np.float64, copy=False)
+        for name in table.column_names
+    }

@@ -1,0 +1,44 @@
+"""Service settings, read from ``FLEETHEALTH_*`` environment variables."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from typing import Literal
+
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    """All settings of the service; see docs/operations.md for each one."""
+
+    model_config = SettingsConfigDict(env_prefix="FLEETHEALTH_", extra="ignore")
+
+    environment: Literal["development", "production", "test"] = "development"
+    database_url: str = "sqlite:///./data/fleethealth.db"
+    host: str = "127.0.0.1"
+    port: int = 8000
+    bootstrap_admin_key: str | None = None
+    bootstrap_operator: str = "default"
+    max_body_bytes: int = Field(default=256 * 1024 * 1024, gt=0)
+    max_batch_samples: int = Field(default=5_000_000, gt=0)
+    max_wait_s: float = Field(default=60.0, ge=0)
+    sqlite_synchronous: Literal["FULL", "NORMAL"] = "FULL"
+    processor_enabled: bool = True
+    processor_scan_interval_s: float = Field(default=2.0, gt=0)
+    processor_max_samples_per_txn: int = Field(default=1_000_000, gt=0)
+    store_sample_outputs: bool = True
+    log_retention_s: float | None = Field(default=None, gt=0)
+    warm_kernels: bool = True
+
+    @field_validator("bootstrap_admin_key")
+    @classmethod
+    def _key_not_placeholder(cls, v: str | None) -> str | None:
+        if v is not None and (len(v) < 16 or v.lower() in {"changeme", "change-me", "secret"}):
+            raise ValueError("FLEETHEALTH_BOOTSTRAP_ADMIN_KEY must be at least 16 characters")
+        return v
+
+
+@lru_cache
+def get_settings() -> Settings:
+    return Settings()

@@ -1,0 +1,232 @@
+"""Turn a request body (JSON, CSV or Arrow IPC) into a validated block of samples.
+
+Missing samples are data: ``null`` in JSON, an empty cell or ``NaN`` in CSV, a null or NaN in
+Arrow all become NaN, which the estimators predict through. Everything else that is not a finite
+number is refused with :class:`~app.errors.InvalidBatch` naming the channel and position.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import orjson
+import pyarrow as pa
+import pyarrow.csv as pacsv
+
+from app.errors import InvalidBatch, UnsupportedMediaType
+
+JSON_TYPES = ("application/json",)
+CSV_TYPES = ("text/csv",)
+ARROW_TYPES = ("application/vnd.apache.arrow.stream",)
+SUPPORTED_TYPES = JSON_TYPES + CSV_TYPES + ARROW_TYPES
+TIME_COLUMN = "t"
+MAX_BATCH_ID_LEN = 128
+
+
+@dataclass(frozen=True)
+class ParsedBatch:
+    batch_id: str
+    t_s: np.ndarray
+    channels: dict[str, np.ndarray]
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.t_s.shape[0])
+
+    def content_hash(self) -> str:
+        """Digest of the decoded samples, so a retry in another format or spacing still matches."""
+        h = hashlib.blake2b(digest_size=16)
+        h.update(np.ascontiguousarray(self.t_s).tobytes())
+        for name in sorted(self.channels):
+            h.update(name.encode())
+            h.update(np.ascontiguousarray(self.channels[name]).tobytes())
+        return h.hexdigest()
+
+
+@dataclass(frozen=True)
+class TimeParams:
+    batch_id: str | None
+    t0: float | None
+    sample_rate_hz: float | None
+
+
+def media_type(content_type: str | None) -> str:
+    mt = (content_type or "").split(";")[0].strip().lower()
+    if mt not in SUPPORTED_TYPES:
+        raise UnsupportedMediaType(
+            f"content type {mt or '(none)'!r} is not supported; use one of "
+            + ", ".join(SUPPORTED_TYPES)
+        )
+    return mt
+
+
+def parse_body(
+    body: bytes, mt: str, params: TimeParams, expected_channels: Sequence[str], max_samples: int
+) -> ParsedBatch:
+    if not body:
+        raise InvalidBatch("empty body")
+    if mt in JSON_TYPES:
+        batch_id, t_s, columns = _parse_json(body, params)
+    elif mt in CSV_TYPES:
+        batch_id, t_s, columns = _parse_table(_read_csv(body), params)
+    else:
+        batch_id, t_s, columns = _parse_table(_read_arrow(body), params)
+    return _validate(batch_id, t_s, columns, expected_channels, max_samples)
+
+
+def _batch_id(value: Any) -> str:
+    if not isinstance(value, str) or not value.strip():
+        raise InvalidBatch("batch_id is required: a non-empty string (JSON field, query parameter "
+                           "batch_id or header Idempotency-Key)")
+    if len(value) > MAX_BATCH_ID_LEN:
+        raise InvalidBatch(f"batch_id is longer than {MAX_BATCH_ID_LEN} characters")
+    return value
+
+
+def _to_float_array(values: Any, name: str) -> np.ndarray:
+    if not isinstance(values, list):
+        raise InvalidBatch(f"channel {name!r} must be a list of numbers or nulls")
+    try:
+        arr = pa.array(values)
+    except (pa.ArrowInvalid, pa.ArrowTypeError, OverflowError) as exc:
+        raise InvalidBatch(f"channel {name!r} holds a value that is not a number: {exc}") from None
+    if not (pa.types.is_floating(arr.type) or pa.types.is_integer(arr.type) or pa.types.is_null(arr.type)):
+        raise InvalidBatch(f"channel {name!r} must hold numbers or nulls, not {arr.type}")
+    return _arrow_to_float(arr, name)
+
+
+def _arrow_to_float(arr: pa.Array | pa.ChunkedArray, name: str) -> np.ndarray:
+    if pa.types.is_null(arr.type):
+        return np.full(len(arr), np.nan)
+    if not (pa.types.is_floating(arr.type) or pa.types.is_integer(arr.type)):
+        raise InvalidBatch(f"column {name!r} has type {arr.type}; numbers are needed")
+    arr = arr.cast(pa.float64())
+    if isinstance(arr, pa.ChunkedArray):
+        arr = arr.combine_chunks()
+    out = arr.to_numpy(zero_copy_only=False)
+    if not out.flags.writeable:
+        out = out.copy()
+    return out
+
+
+def _parse_json(body: bytes, params: TimeParams) -> tuple[str, np.ndarray | None, dict[str, np.ndarray]]:
+    try:
+        doc = orjson.loads(body)
+    except orjson.JSONDecodeError as exc:
+        raise InvalidBatch(f"body is not valid JSON (NaN and Infinity are not JSON; send null "
+                           f"for a missing sample): {exc}") from None
+    if not isinstance(doc, dict):
+        raise InvalidBatch("body must be a JSON object with batch_id and channels")
+    unknown = set(doc) - {"batch_id", "t", "t0", "sample_rate_hz", "channels"}
+    if unknown:
+        raise InvalidBatch(f"unknown fields: {', '.join(sorted(unknown))}")
+    batch_id = _batch_id(doc.get("batch_id", params.batch_id))
+    chans = doc.get("channels")
+    if not isinstance(chans, dict) or not chans:
+        raise InvalidBatch("channels must be a non-empty object {name: [values]}")
+    columns = {str(k): _to_float_array(v, str(k)) for k, v in chans.items()}
+    t_s = None
+    if doc.get("t") is not None:
+        if "t0" in doc or "sample_rate_hz" in doc:
+            raise InvalidBatch("give either t or t0 with sample_rate_hz, not both")
+        t_s = _to_float_array(doc["t"], "t")
+    else:
+        t0 = doc.get("t0", params.t0)
+        rate = doc.get("sample_rate_hz", params.sample_rate_hz)
+        n = len(next(iter(columns.values())))
+        t_s = _regular_time(t0, rate, n)
+    return batch_id, t_s, columns
+
+
+def _regular_time(t0: Any, rate: Any, n: int) -> np.ndarray:
+    if t0 is None or rate is None:
+        raise InvalidBatch("timestamps are required: a t column, or t0 and sample_rate_hz")
+    if isinstance(t0, bool) or not isinstance(t0, int | float) or not math.isfinite(t0):
+        raise InvalidBatch("t0 must be a finite number of seconds")
+    if isinstance(rate, bool) or not isinstance(rate, int | float) or not (math.isfinite(rate) and rate > 0):
+        raise InvalidBatch("sample_rate_hz must be a positive finite number")
+    return float(t0) + np.arange(n, dtype=np.float64) / float(rate)
+
+
+def _read_csv(body: bytes) -> pa.Table:
+    try:
+        return pacsv.read_csv(
+            io.BytesIO(body),
+            convert_options=pacsv.ConvertOptions(
+                null_values=["", "NaN", "nan", "NA", "null"], strings_can_be_null=True
+            ),
+        )
+    except (pa.ArrowInvalid, pa.ArrowTypeError) as exc:
+        raise InvalidBatch(f"CSV could not be read: {exc}") from None
+
+
+def _read_arrow(body: bytes) -> pa.Table:
+    try:
+        return pa.ipc.open_stream(pa.py_buffer(body)).read_all()
+    except (pa.ArrowInvalid, pa.ArrowTypeError, OSError) as exc:
+        raise InvalidBatch(f"body is not an Arrow IPC stream: {exc}") from None
+
+
+def _parse_table(table: pa.Table, params: TimeParams) -> tuple[str, np.ndarray | None, dict[str, np.ndarray]]:
+    batch_id = _batch_id(params.batch_id)
+    names = table.column_names
+    if len(set(names)) != len(names):
+        raise InvalidBatch("column names repeat")
+    columns = {
+        name: _arrow_to_float(table.column(name), name) for name in names if name != TIME_COLUMN
+    }
+    if TIME_COLUMN in names:
+        if params.t0 is not None or params.sample_rate_hz is not None:
+            raise InvalidBatch("give either a t column or t0 with sample_rate_hz, not both")
+        t_s = _arrow_to_float(table.column(TIME_COLUMN), TIME_COLUMN)
+    else:
+        t_s = _regular_time(params.t0, params.sample_rate_hz, table.num_rows)
+    return batch_id, t_s, columns
+
+
+def _validate(
+    batch_id: str,
+    t_s: np.ndarray | None,
+    columns: Mapping[str, np.ndarray],
+    expected: Sequence[str],
+    max_samples: int,
+) -> ParsedBatch:
+    assert t_s is not None
+    unknown = sorted(set(columns) - set(expected))
+    missing = [c for c in expected if c not in columns]
+    if unknown:
+        raise InvalidBatch(f"unknown channels: {', '.join(unknown)} (this actuator has: "
+                           f"{', '.join(expected)})")
+    if missing:
+        raise InvalidBatch(f"missing channels: {', '.join(missing)} (send NaN/null for samples "
+                           "the sensor did not give)")
+    n = t_s.shape[0]
+    for name, col in columns.items():
+        if col.shape[0] != n:
+            raise InvalidBatch(f"channel {name!r} has {col.shape[0]} samples but t has {n}")
+    if n == 0:
+        raise InvalidBatch("empty batch: no samples")
+    if n > max_samples:
+        raise InvalidBatch(f"batch has {n} samples; the limit is {max_samples}: split it")
+    if not np.all(np.isfinite(t_s)):
+        k = int(np.argmin(np.isfinite(t_s)))
+        raise InvalidBatch(f"t[{k}] is not a finite number")
+    if n > 1:
+        d = np.diff(t_s)
+        if not np.all(d > 0):
+            k = int(np.argmin(d > 0))
+            raise InvalidBatch(f"timestamps must increase strictly: t[{k + 1}]={t_s[k + 1]!r} "
+                               f"follows t[{k}]={t_s[k]!r}")
+    for name, col in columns.items():
+        bad = np.isinf(col)
+        if bad.any():
+            k = int(np.argmax(bad))
+            raise InvalidBatch(f"channel {name!r} holds an infinite value at index {k}")
+    ordered = {c: np.ascontiguousarray(columns[c], dtype=np.float64) for c in expected}
+    return ParsedBatch(batch_id=batch_id, t_s=np.ascontiguousarray(t_s, dtype=np.float64), channels=ordered)

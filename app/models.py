@@ -1,0 +1,187 @@
+"""Every ORM table. Times of samples are stream seconds (float); wall-clock times are UTC
+datetimes stored with time zone and normalized on read (SQLite returns naive ones)."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from typing import Any
+
+from sqlalchemy import (
+    JSON,
+    BigInteger,
+    DateTime,
+    Float,
+    ForeignKey,
+    Index,
+    Integer,
+    LargeBinary,
+    String,
+    TypeDecorator,
+    UniqueConstraint,
+)
+from sqlalchemy.orm import Mapped, mapped_column, relationship
+
+from app.db import Base
+
+
+class UTCDateTime(TypeDecorator[datetime]):
+    impl = DateTime(timezone=True)
+    cache_ok = True
+
+    def process_bind_param(self, value: datetime | None, dialect: Any) -> datetime | None:
+        if value is not None and value.tzinfo is None:
+            raise ValueError("naive datetime")
+        return value
+
+    def process_result_value(self, value: datetime | None, dialect: Any) -> datetime | None:
+        if value is not None and value.tzinfo is None:
+            value = value.replace(tzinfo=UTC)
+        return value
+
+
+def utcnow() -> datetime:
+    return datetime.now(UTC)
+
+
+class Operator(Base):
+    __tablename__ = "operators"
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    name: Mapped[str] = mapped_column(String(100), unique=True)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+
+class ApiKey(Base):
+    __tablename__ = "api_keys"
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    operator_id: Mapped[int] = mapped_column(ForeignKey("operators.id", ondelete="CASCADE"))
+    name: Mapped[str] = mapped_column(String(100), default="")
+    prefix: Mapped[str] = mapped_column(String(16))
+    key_hash: Mapped[str] = mapped_column(String(64), unique=True)
+    scopes: Mapped[str] = mapped_column(String(100))
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    revoked_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+
+    operator: Mapped[Operator] = relationship(lazy="raise")
+
+
+class Aircraft(Base):
+    __tablename__ = "aircraft"
+    __table_args__ = (UniqueConstraint("operator_id", "tail"),)
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    operator_id: Mapped[int] = mapped_column(ForeignKey("operators.id", ondelete="CASCADE"))
+    tail: Mapped[str] = mapped_column(String(32))
+    description: Mapped[str | None] = mapped_column(String(500), nullable=True)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+    actuators: Mapped[list[Actuator]] = relationship(back_populates="aircraft", lazy="raise")
+
+
+class Actuator(Base):
+    """An actuator and its telemetry stream (one stream per actuator)."""
+
+    __tablename__ = "actuators"
+    __table_args__ = (UniqueConstraint("aircraft_id", "actuator_id"),)
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    aircraft_id: Mapped[int] = mapped_column(ForeignKey("aircraft.id", ondelete="CASCADE"))
+    actuator_id: Mapped[str] = mapped_column(String(64))
+    kind: Mapped[str] = mapped_column(String(32))
+    channels: Mapped[list[str]] = mapped_column(JSON)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    # What the telemetry log holds; written by ingest under a lock on this row.
+    last_logged_seq: Mapped[int] = mapped_column(BigInteger, default=0)
+    last_logged_t_s: Mapped[float | None] = mapped_column(Float, nullable=True)
+
+    aircraft: Mapped[Aircraft] = relationship(back_populates="actuators", lazy="raise")
+    stream: Mapped[Stream] = relationship(lazy="raise", uselist=False)
+
+
+class Stream(Base):
+    """What the estimators have applied; written by the processor under a lock on this row
+    (a separate row from the actuator's, so ingest never waits for an apply)."""
+
+    __tablename__ = "streams"
+    actuator_pk: Mapped[int] = mapped_column(
+        ForeignKey("actuators.id", ondelete="CASCADE"), primary_key=True
+    )
+    last_applied_seq: Mapped[int] = mapped_column(BigInteger, default=0)
+    last_applied_t_s: Mapped[float | None] = mapped_column(Float, nullable=True)
+    status: Mapped[str] = mapped_column(String(8), default="ok")
+    updated_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+
+class EstimatorState(Base):
+    """An estimator attached to an actuator: its config and its latest committed state."""
+
+    __tablename__ = "estimator_states"
+    actuator_pk: Mapped[int] = mapped_column(
+        ForeignKey("actuators.id", ondelete="CASCADE"), primary_key=True
+    )
+    estimator: Mapped[str] = mapped_column(String(32), primary_key=True)
+    config: Mapped[dict[str, Any]] = mapped_column(JSON)
+    state: Mapped[bytes | None] = mapped_column(LargeBinary, nullable=True)
+    applied_seq: Mapped[int] = mapped_column(BigInteger, default=0)
+    status: Mapped[str] = mapped_column(String(8), default="ok")
+    reasons: Mapped[list[str]] = mapped_column(JSON, default=list)
+
+
+class TelemetryBatch(Base):
+    """The telemetry log: one row per accepted batch, in stream order (seq)."""
+
+    __tablename__ = "telemetry_batches"
+    __table_args__ = (
+        UniqueConstraint("actuator_pk", "seq"),
+        UniqueConstraint("actuator_pk", "batch_id"),
+    )
+    id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"), primary_key=True)
+    actuator_pk: Mapped[int] = mapped_column(ForeignKey("actuators.id", ondelete="CASCADE"))
+    seq: Mapped[int] = mapped_column(BigInteger)
+    batch_id: Mapped[str] = mapped_column(String(128))
+    content_hash: Mapped[str] = mapped_column(String(32))
+    n_samples: Mapped[int] = mapped_column(Integer)
+    t_first_s: Mapped[float] = mapped_column(Float)
+    t_last_s: Mapped[float] = mapped_column(Float)
+    received_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    applied_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    payload: Mapped[bytes | None] = mapped_column(LargeBinary, nullable=True)
+
+
+class HealthWindowRow(Base):
+    __tablename__ = "health_windows"
+    __table_args__ = (Index("ix_health_windows_stream_time", "actuator_pk", "estimator", "t_end_s"),)
+    id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"), primary_key=True)
+    actuator_pk: Mapped[int] = mapped_column(ForeignKey("actuators.id", ondelete="CASCADE"))
+    estimator: Mapped[str] = mapped_column(String(32))
+    seq: Mapped[int] = mapped_column(BigInteger)
+    t_start_s: Mapped[float] = mapped_column(Float)
+    t_end_s: Mapped[float] = mapped_column(Float)
+    n_samples: Mapped[int] = mapped_column(Integer)
+    indicators: Mapped[dict[str, Any]] = mapped_column(JSON)
+    status: Mapped[str] = mapped_column(String(8))
+    reasons: Mapped[list[str]] = mapped_column(JSON)
+
+
+class SampleOutputRow(Base):
+    """Per-sample estimator outputs of one applied batch, as a compressed Arrow IPC blob."""
+
+    __tablename__ = "sample_outputs"
+    __table_args__ = (Index("ix_sample_outputs_stream_time", "actuator_pk", "estimator", "t_last_s"),)
+    id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"), primary_key=True)
+    actuator_pk: Mapped[int] = mapped_column(ForeignKey("actuators.id", ondelete="CASCADE"))
+    estimator: Mapped[str] = mapped_column(String(32))
+    seq: Mapped[int] = mapped_column(BigInteger)
+    t_first_s: Mapped[float] = mapped_column(Float)
+    t_last_s: Mapped[float] = mapped_column(Float)
+    n_samples: Mapped[int] = mapped_column(Integer)
+    payload: Mapped[bytes] = mapped_column(LargeBinary)
+
+
+class EstimatorEventRow(Base):
+    __tablename__ = "estimator_events"
+    __table_args__ = (Index("ix_estimator_events_stream_time", "actuator_pk", "t_s"),)
+    id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"), primary_key=True)
+    actuator_pk: Mapped[int] = mapped_column(ForeignKey("actuators.id", ondelete="CASCADE"))
+    estimator: Mapped[str] = mapped_column(String(32))
+    seq: Mapped[int] = mapped_column(BigInteger)
+    t_s: Mapped[float] = mapped_column(Float)
+    kind: Mapped[str] = mapped_column(String(48))
+    detail: Mapped[dict[str, Any]] = mapped_column(JSON)

@@ -1,0 +1,210 @@
+"""Read side: health, history, per-sample outputs, events and the fleet overview."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from app.codec import decode_columns
+from app.errors import NotFound
+from app.ingest import TIME_COLUMN
+from app.models import (
+    Actuator,
+    Aircraft,
+    EstimatorEventRow,
+    EstimatorState,
+    HealthWindowRow,
+    SampleOutputRow,
+    Stream,
+)
+from estimators.base import STATUS_ORDER, worst_status
+
+
+def _window(row: HealthWindowRow) -> dict[str, Any]:
+    return {
+        "estimator": row.estimator,
+        "seq": row.seq,
+        "t_start_s": row.t_start_s,
+        "t_end_s": row.t_end_s,
+        "n_samples": row.n_samples,
+        "indicators": row.indicators,
+        "status": row.status,
+        "reasons": row.reasons,
+    }
+
+
+def latest_health(session: Session, tail: str, act: Actuator) -> dict[str, Any]:
+    stream = session.get(Stream, act.id)
+    assert stream is not None
+    estimators: dict[str, Any] = {}
+    for er in session.scalars(
+        select(EstimatorState).where(EstimatorState.actuator_pk == act.id).order_by(EstimatorState.estimator)
+    ):
+        last = session.scalar(
+            select(HealthWindowRow)
+            .where(HealthWindowRow.actuator_pk == act.id, HealthWindowRow.estimator == er.estimator)
+            .order_by(HealthWindowRow.t_end_s.desc())
+            .limit(1)
+        )
+        estimators[er.estimator] = {
+            "status": er.status,
+            "reasons": er.reasons,
+            "window": _window(last) if last is not None else None,
+        }
+    return {
+        "tail": tail,
+        "actuator_id": act.actuator_id,
+        "kind": act.kind,
+        "status": stream.status,
+        "last_logged_seq": act.last_logged_seq,
+        "last_applied_seq": stream.last_applied_seq,
+        "t_last_s": stream.last_applied_t_s,
+        "updated_at": stream.updated_at,
+        "estimators": estimators,
+    }
+
+
+def _check_estimator(session: Session, act: Actuator, estimator: str | None) -> None:
+    if estimator is not None and session.get(EstimatorState, (act.id, estimator)) is None:
+        raise NotFound(f"estimator {estimator!r} is not attached to actuator {act.actuator_id!r}")
+
+
+def health_history(
+    session: Session,
+    act: Actuator,
+    estimator: str | None,
+    from_s: float | None,
+    to_s: float | None,
+    limit: int,
+) -> list[dict[str, Any]]:
+    _check_estimator(session, act, estimator)
+    stmt = select(HealthWindowRow).where(HealthWindowRow.actuator_pk == act.id)
+    if estimator is not None:
+        stmt = stmt.where(HealthWindowRow.estimator == estimator)
+    if from_s is not None:
+        stmt = stmt.where(HealthWindowRow.t_end_s >= from_s)
+    if to_s is not None:
+        stmt = stmt.where(HealthWindowRow.t_start_s <= to_s)
+    stmt = stmt.order_by(HealthWindowRow.t_end_s, HealthWindowRow.estimator).limit(limit)
+    return [_window(r) for r in session.scalars(stmt)]
+
+
+def sample_outputs(
+    session: Session,
+    act: Actuator,
+    estimator: str,
+    from_s: float | None,
+    to_s: float | None,
+    max_samples: int,
+) -> dict[str, Any]:
+    _check_estimator(session, act, estimator)
+    stmt = select(SampleOutputRow).where(
+        SampleOutputRow.actuator_pk == act.id, SampleOutputRow.estimator == estimator
+    )
+    if from_s is not None:
+        stmt = stmt.where(SampleOutputRow.t_last_s >= from_s)
+    if to_s is not None:
+        stmt = stmt.where(SampleOutputRow.t_first_s <= to_s)
+    parts: list[dict[str, np.ndarray]] = []
+    n = 0
+    truncated = False
+    for row in session.scalars(stmt.order_by(SampleOutputRow.seq)):
+        cols = decode_columns(row.payload)
+        t = cols[TIME_COLUMN]
+        keep = np.ones(t.shape, dtype=bool)
+        if from_s is not None:
+            keep &= t >= from_s
+        if to_s is not None:
+            keep &= t <= to_s
+        cols = {k: v[keep] for k, v in cols.items()}
+        take = min(len(cols[TIME_COLUMN]), max_samples - n)
+        if take < len(cols[TIME_COLUMN]):
+            truncated = True
+        cols = {k: v[:take] for k, v in cols.items()}
+        parts.append(cols)
+        n += take
+        if n >= max_samples:
+            break
+    names = [k for k in (parts[0] if parts else {}) if k != TIME_COLUMN]
+    joined = {k: np.concatenate([p[k] for p in parts]) if parts else np.empty(0) for k in [TIME_COLUMN, *names]}
+
+    def as_list(a: np.ndarray) -> list[float | None]:
+        return [None if not np.isfinite(x) else x for x in a.tolist()]
+
+    return {
+        "estimator": estimator,
+        "t_s": joined[TIME_COLUMN].tolist(),
+        "series": {k: as_list(joined[k]) for k in names},
+        "truncated": truncated,
+    }
+
+
+def events(
+    session: Session, act: Actuator, from_s: float | None, to_s: float | None, limit: int
+) -> list[dict[str, Any]]:
+    stmt = select(EstimatorEventRow).where(EstimatorEventRow.actuator_pk == act.id)
+    if from_s is not None:
+        stmt = stmt.where(EstimatorEventRow.t_s >= from_s)
+    if to_s is not None:
+        stmt = stmt.where(EstimatorEventRow.t_s <= to_s)
+    rows = session.scalars(stmt.order_by(EstimatorEventRow.t_s, EstimatorEventRow.id).limit(limit))
+    return [
+        {"estimator": r.estimator, "seq": r.seq, "t_s": r.t_s, "kind": r.kind, "detail": r.detail}
+        for r in rows
+    ]
+
+
+FLEET_SORTS = ("status", "tail", "updated")
+
+
+def fleet_health(session: Session, operator_id: int, sort: str) -> list[dict[str, Any]]:
+    rows = session.execute(
+        select(
+            Aircraft.tail,
+            Actuator.actuator_id,
+            Actuator.kind,
+            Actuator.last_logged_seq,
+            Stream.status,
+            Stream.last_applied_seq,
+            Stream.last_applied_t_s,
+            Stream.updated_at,
+        )
+        .join(Actuator, Actuator.aircraft_id == Aircraft.id, isouter=True)
+        .join(Stream, Stream.actuator_pk == Actuator.id, isouter=True)
+        .where(Aircraft.operator_id == operator_id)
+        .order_by(Aircraft.tail, Actuator.actuator_id)
+    ).all()
+    by_tail: dict[str, dict[str, Any]] = {}
+    for tail, act_id, kind, logged, status, applied, t_last, updated in rows:
+        ac = by_tail.setdefault(tail, {"tail": tail, "status": "ok", "updated_at": None, "actuators": []})
+        if act_id is None:
+            continue
+        ac["actuators"].append(
+            {
+                "actuator_id": act_id,
+                "kind": kind,
+                "status": status,
+                "t_last_s": t_last,
+                "last_logged_seq": logged,
+                "last_applied_seq": applied,
+                "updated_at": updated,
+            }
+        )
+    for ac in by_tail.values():
+        ac["status"] = worst_status([a["status"] for a in ac["actuators"]])
+        ups = [a["updated_at"] for a in ac["actuators"] if a["updated_at"] is not None]
+        ac["updated_at"] = max(ups) if ups else None
+        ac["actuators"].sort(key=lambda a: (-STATUS_ORDER[a["status"]], a["actuator_id"]))
+    out = list(by_tail.values())
+    if sort == "status":
+        out.sort(key=lambda a: (-STATUS_ORDER[a["status"]], a["tail"]))
+    elif sort == "updated":
+        out.sort(key=lambda a: (a["updated_at"] is None, -(a["updated_at"].timestamp() if a["updated_at"] else 0), a["tail"]))
+    return out
+
+
+def count_streams(session: Session) -> int:
+    return int(session.scalar(select(func.count()).select_from(Stream)) or 0)

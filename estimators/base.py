@@ -1,0 +1,161 @@
+"""The contract every estimator kind implements.
+
+An estimator is a pure function over an explicit state::
+
+    state, outputs = kind.step(config, state, batch)
+
+* ``config`` is an immutable, validated configuration built by ``kind.parse_config(raw_dict)``.
+* ``state`` is immutable; ``kind.dump_state`` / ``kind.load_state`` give a versioned byte form.
+  Loading an unknown version raises :class:`StateVersionError`.
+* ``batch`` holds whole arrays; a NaN in a channel means "the sensor gave nothing at this time"
+  and the estimator predicts through it.
+* Feeding a series in one batch or split into any batches gives the same outputs: per-sample
+  outputs are per sample, and health indicators are computed over fixed windows of stream samples
+  whose partial accumulators live in the state, so a window that spans two batches is reported
+  once, by the batch that completes it.
+
+This module holds only plain Python and numpy: the service (``app``) depends on it, never the
+reverse.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+Status = Literal["ok", "watch", "alert"]
+STATUS_ORDER: dict[str, int] = {"ok": 0, "watch": 1, "alert": 2}
+
+FloatArray = NDArray[np.float64]
+
+
+class EstimatorError(ValueError):
+    """Base class for errors an estimator reports about its inputs."""
+
+
+class ConfigError(EstimatorError):
+    """The estimator configuration is invalid (the service answers 422)."""
+
+
+class StateVersionError(EstimatorError):
+    """A serialized state has a schema version this code does not know."""
+
+
+class OutOfOrderError(EstimatorError):
+    """A batch starts at or before the time of the state's last sample (the service answers 409)."""
+
+
+class IdentificationError(EstimatorError):
+    """Model identification failed (unstable fit, too little excitation); reported, not raised
+    to the client, since it happens while a stream is being applied."""
+
+
+@dataclass(frozen=True)
+class Batch:
+    """A block of consecutive samples of one stream.
+
+    Attributes:
+        t_s: sample times in seconds, shape (n,), strictly increasing.
+        channels: channel name -> values, each shape (n,), float64; NaN marks a missing sample.
+    """
+
+    t_s: FloatArray
+    channels: Mapping[str, FloatArray]
+
+    def __len__(self) -> int:
+        return int(self.t_s.shape[0])
+
+
+@dataclass(frozen=True)
+class HealthWindow:
+    """Health indicators over one completed window of stream samples.
+
+    Attributes:
+        t_start_s: time of the window's first sample.
+        t_end_s: time of the window's last sample.
+        n_samples: samples in the window.
+        indicators: indicator name -> value (None when undefined, e.g. no valid sample).
+        status: worst status of the indicators against the configured thresholds.
+        reasons: human-readable reasons for a non-ok status.
+    """
+
+    t_start_s: float
+    t_end_s: float
+    n_samples: int
+    indicators: dict[str, float | None]
+    status: Status
+    reasons: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class EstimatorEvent:
+    """Something that happened once in a stream (identification done or failed, fault detected).
+
+    Attributes:
+        t_s: stream time of the event.
+        kind: short machine name, e.g. ``"identified"``, ``"identification_failed"``.
+        detail: JSON-serializable details.
+    """
+
+    t_s: float
+    kind: str
+    detail: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class StepOutputs:
+    """What one ``step`` produced.
+
+    Attributes:
+        samples: per-sample outputs, name -> array of shape (n,) aligned with ``batch.t_s``.
+        health: windows completed during this batch, in time order.
+        events: events raised during this batch, in time order.
+    """
+
+    samples: dict[str, FloatArray]
+    health: Sequence[HealthWindow] = ()
+    events: Sequence[EstimatorEvent] = ()
+
+
+class EstimatorKind(Protocol):
+    """What a module in ``estimators`` exposes to be registered as an estimator kind."""
+
+    NAME: str
+    STATE_VERSION: int
+
+    def parse_config(self, raw: Mapping[str, Any]) -> Any:
+        """Validate a JSON-like mapping; raise :class:`ConfigError` naming the problem."""
+
+    def config_to_dict(self, config: Any) -> dict[str, Any]:
+        """The full configuration with defaults filled in, JSON-serializable."""
+
+    def required_channels(self, config: Any) -> tuple[str, ...]:
+        """Names of the stream channels this estimator reads."""
+
+    def initial_state(self, config: Any) -> Any:
+        """State before the first sample."""
+
+    def step(self, config: Any, state: Any, batch: Batch) -> tuple[Any, StepOutputs]:
+        """Advance over a whole batch."""
+
+    def dump_state(self, state: Any) -> bytes:
+        """Versioned byte form of the state."""
+
+    def load_state(self, data: bytes) -> Any:
+        """Inverse of :meth:`dump_state`; raise :class:`StateVersionError` on unknown versions."""
+
+    def warm_up(self) -> None:
+        """Compile (or load from cache) the kernels so that no request pays a compile."""
+
+
+def worst_status(statuses: Sequence[str]) -> Status:
+    """The most severe of a sequence of statuses ("ok" for an empty one)."""
+    worst: Status = "ok"
+    for s in statuses:
+        if STATUS_ORDER[s] > STATUS_ORDER[worst]:
+            worst = s  # type: ignore[assignment]
+    return worst

@@ -1,0 +1,1 @@
+"""Compiled per-sample loops (numba, ``cache=True``) shared by the estimators."""

@@ -1,0 +1,48 @@
+"""Estimator kinds and actuator kinds known to the service.
+
+An actuator kind names the channels its telemetry carries and the estimators attached by default.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from types import ModuleType
+from typing import Any
+
+from estimators import fakf
+
+ESTIMATORS: dict[str, ModuleType] = {
+    fakf.NAME: fakf,
+}
+
+
+@dataclass(frozen=True)
+class ActuatorKind:
+    """Defaults for one kind of actuator.
+
+    Attributes:
+        name: kind name used in the API.
+        description: one line for the docs and the API.
+        channels: channel names its telemetry carries by default.
+        default_estimators: estimator name -> raw config attached when none are given.
+    """
+
+    name: str
+    description: str
+    channels: tuple[str, ...]
+    default_estimators: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+
+ACTUATOR_KINDS: dict[str, ActuatorKind] = {
+    "ema_voltage": ActuatorKind(
+        name="ema_voltage",
+        description="Electro-mechanical actuator, motor voltage monitoring (current, voltage) -> FAKF",
+        channels=("current", "voltage"),
+        default_estimators={"fakf": {}},
+    ),
+}
+
+
+def get_estimator(name: str) -> ModuleType:
+    """The estimator module registered under ``name`` (KeyError if none)."""
+    return ESTIMATORS[name]

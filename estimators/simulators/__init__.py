@@ -1,0 +1,1 @@
+"""Reference plants with ground truth, for tests, benchmarks and the demo fleet."""
