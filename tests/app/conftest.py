@@ -1,0 +1,107 @@
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import orjson
+import pyarrow as pa
+import pytest
+from fastapi.testclient import TestClient
+
+from app.config import Settings
+from app.main import create_app
+
+ADMIN_KEY = "test-admin-key-abcdefghijklmnop"
+FAKF_SMALL = {"identification_samples": 200, "health_window_samples": 250}
+
+
+def make_settings(db_url: str, **kw: Any) -> Settings:
+    return Settings(
+        database_url=db_url,
+        bootstrap_admin_key=ADMIN_KEY,
+        environment="test",
+        processor_scan_interval_s=0.2,
+        **kw,
+    )
+
+
+class Api:
+    """A TestClient with the admin key and helpers for the common calls."""
+
+    def __init__(self, client: TestClient, key: str = ADMIN_KEY) -> None:
+        self.c = client
+        self.h = {"Authorization": f"Bearer {key}"}
+        self.app = client.app
+
+    def get(self, path: str, **kw: Any) -> Any:
+        return self.c.get(path, headers={**self.h, **kw.pop("headers", {})}, **kw)
+
+    def post(self, path: str, **kw: Any) -> Any:
+        return self.c.post(path, headers={**self.h, **kw.pop("headers", {})}, **kw)
+
+    def setup_actuator(self, tail: str = "N1", act: str = "ema1", estimators: Any = None) -> None:
+        r = self.post("/v1/aircraft", json={"tail": tail})
+        assert r.status_code in (201, 409), r.text
+        r = self.post(
+            f"/v1/aircraft/{tail}/actuators",
+            json={"actuator_id": act, "kind": "ema_voltage", "estimators": estimators or {"fakf": FAKF_SMALL}},
+        )
+        assert r.status_code == 201, r.text
+
+    def send_json(self, tail: str, act: str, batch_id: str, t: np.ndarray, chans: dict[str, np.ndarray],
+                  wait: float = 30.0) -> Any:
+        body = {
+            "batch_id": batch_id,
+            "t": t.tolist(),
+            "channels": {k: [None if np.isnan(x) else float(x) for x in v] for k, v in chans.items()},
+        }
+        return self.post(
+            f"/v1/aircraft/{tail}/actuators/{act}/telemetry?wait={wait}",
+            content=orjson.dumps(body),
+            headers={"content-type": "application/json"},
+        )
+
+    def send_arrow(self, tail: str, act: str, batch_id: str, t: np.ndarray, chans: dict[str, np.ndarray],
+                   wait: float = 30.0) -> Any:
+        return self.post(
+            f"/v1/aircraft/{tail}/actuators/{act}/telemetry?batch_id={batch_id}&wait={wait}",
+            content=arrow_bytes({"t": t, **chans}),
+            headers={"content-type": "application/vnd.apache.arrow.stream"},
+        )
+
+    def history(self, tail: str = "N1", act: str = "ema1") -> list[dict[str, Any]]:
+        r = self.get(f"/v1/aircraft/{tail}/actuators/{act}/health/history")
+        assert r.status_code == 200, r.text
+        return r.json()["items"]  # type: ignore[no-any-return]
+
+    def outputs(self, tail: str = "N1", act: str = "ema1") -> dict[str, Any]:
+        r = self.get(f"/v1/aircraft/{tail}/actuators/{act}/outputs?estimator=fakf&max_samples=1000000")
+        assert r.status_code == 200, r.text
+        return r.json()  # type: ignore[no-any-return]
+
+    def health(self, tail: str = "N1", act: str = "ema1") -> dict[str, Any]:
+        r = self.get(f"/v1/aircraft/{tail}/actuators/{act}/health")
+        assert r.status_code == 200, r.text
+        return r.json()  # type: ignore[no-any-return]
+
+
+def arrow_bytes(cols: dict[str, np.ndarray]) -> bytes:
+    table = pa.table({k: pa.array(np.asarray(v, dtype=np.float64)) for k, v in cols.items()})
+    sink = pa.BufferOutputStream()
+    with pa.ipc.new_stream(sink, table.schema) as w:
+        w.write_table(table)
+    return sink.getvalue().to_pybytes()
+
+
+@pytest.fixture
+def api(db_url: str) -> Iterator[Api]:
+    with TestClient(create_app(make_settings(db_url))) as client:
+        yield Api(client)
+
+
+@pytest.fixture
+def api_noproc(db_url: str) -> Iterator[Api]:
+    """The service with its processor switched off: batches are logged, never applied."""
+    with TestClient(create_app(make_settings(db_url, processor_enabled=False))) as client:
+        yield Api(client)
