@@ -109,10 +109,8 @@ def _arrow_to_float(arr: pa.Array | pa.ChunkedArray, name: str) -> np.ndarray:
     arr = arr.cast(pa.float64())
     if isinstance(arr, pa.ChunkedArray):
         arr = arr.combine_chunks()
-    out = arr.to_numpy(zero_copy_only=False)
-    if not out.flags.writeable:
-        out = out.copy()
-    return out
+    # Read-only views are fine: nothing downstream writes into the samples.
+    return arr.to_numpy(zero_copy_only=False)
 
 
 def _parse_json(body: bytes, params: TimeParams) -> tuple[str, np.ndarray | None, dict[str, np.ndarray]]:
