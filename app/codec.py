@@ -21,7 +21,9 @@ def encode_columns(columns: Mapping[str, np.ndarray]) -> bytes:
 
 def decode_columns(data: bytes) -> dict[str, np.ndarray]:
     table = pa.ipc.open_stream(pa.py_buffer(data)).read_all()
+    # Writeable copies: numba compiles read-only arrays as a separate type, which the start-up
+    # warm-up does not cover, so a zero-copy view here would make the first apply compile.
     return {
-        name: table.column(name).to_numpy().astype(np.float64, copy=False)
+        name: np.array(table.column(name).to_numpy(), dtype=np.float64)
         for name in table.column_names
     }

@@ -1,0 +1,36 @@
+"""No request pays a compile: after start-up warm-up, applying batches adds no kernel signature."""
+
+from __future__ import annotations
+
+import importlib
+import pkgutil
+
+from numba.core.registry import CPUDispatcher
+
+import estimators.kernels
+from tests.app.conftest import Api
+from tests.conftest import make_series
+
+
+def _signatures() -> dict[str, int]:
+    out: dict[str, int] = {}
+    for info in pkgutil.iter_modules(estimators.kernels.__path__):
+        mod = importlib.import_module(f"estimators.kernels.{info.name}")
+        for name, obj in vars(mod).items():
+            if isinstance(obj, CPUDispatcher):
+                out[f"{info.name}.{name}"] = len(obj.signatures)
+    return out
+
+
+def test_applying_batches_compiles_nothing_new(api: Api) -> None:
+    assert api.app.state.kernels_warm.wait(120)
+    before = _signatures()
+    assert any(before.values()), "warm-up compiled no kernel"
+    api.setup_actuator()
+    s = make_series(1500, seed=3)
+    s.voltage[700:705] = float("nan")
+    for k, (a, b) in enumerate([(0, 1), (1, 900), (900, 1500)]):
+        r = api.send_arrow("N1", "ema1", f"w{k}", s.t_s[a:b], {"current": s.current[a:b], "voltage": s.voltage[a:b]})
+        assert r.status_code == 202
+    assert api.health()["last_applied_seq"] == 3
+    assert _signatures() == before
