@@ -9,7 +9,6 @@ import pytest
 from sqlalchemy import func, select
 
 from app.codec import decode_columns
-from app.config import Settings
 from app.db import Database
 from app.models import Actuator, HealthWindowRow, Stream, TelemetryBatch
 from app.processing import apply_pending

@@ -1,0 +1,1 @@
+"""Command-line tools that feed a running fleethealth server: ``simulate`` and ``replay``."""
