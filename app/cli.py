@@ -7,7 +7,6 @@ import json
 import os
 import sys
 import threading
-import time
 from pathlib import Path
 
 DEMO_OPERATOR = "demo"
@@ -66,20 +65,10 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
 
 def _demo_feeder(url: str, key: str, stop: threading.Event) -> None:
-    import httpx
-
     from app.tools.simulate import run_simulation
 
-    deadline = time.monotonic() + 120
-    while not stop.is_set() and time.monotonic() < deadline:
-        try:
-            if httpx.get(f"{url}/readyz", timeout=2).status_code == 200:
-                break
-        except httpx.HTTPError:
-            pass
-        time.sleep(0.5)
     try:
-        run_simulation(url, key, stop_event=stop)
+        run_simulation(url, key, stop_event=stop)  # waits for /readyz itself
     except Exception as exc:  # the demo feeder must never take the server down
         print(f"demo simulator stopped: {exc}", file=sys.stderr)
 
