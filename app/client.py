@@ -193,6 +193,20 @@ def _query_params(batch_id: str, time_params: Mapping[str, float]) -> dict[str, 
     return params
 
 
+def _table_columns(
+    channels: Mapping[str, ArrayLike],
+    t_s: ArrayLike | None,
+    t0: float | None,
+    sample_rate_hz: float | None,
+) -> tuple[list[str], list[FloatArray], dict[str, float]]:
+    """Column names and arrays of a table body (``t`` first when given), and the time params."""
+    t_arr, columns = _as_float_columns(channels, t_s)
+    time_params = _time_params(t_arr, t0, sample_rate_hz)
+    names = (["t"] if t_arr is not None else []) + list(columns)
+    arrays = ([t_arr] if t_arr is not None else []) + list(columns.values())
+    return names, arrays, time_params
+
+
 def encode_batch_json(
     batch_id: str,
     channels: Mapping[str, ArrayLike],
@@ -222,10 +236,7 @@ def encode_batch_csv(
     sample_rate_hz: float | None = None,
 ) -> EncodedBatch:
     """CSV with a header row (``t`` first when given) and an empty cell for each NaN."""
-    t_arr, columns = _as_float_columns(channels, t_s)
-    time_params = _time_params(t_arr, t0, sample_rate_hz)
-    names = (["t"] if t_arr is not None else []) + list(columns)
-    arrays = ([t_arr] if t_arr is not None else []) + list(columns.values())
+    names, arrays, time_params = _table_columns(channels, t_s, t0, sample_rate_hz)
     # from_pandas=True turns NaN into null, which the CSV writer leaves as an empty cell.
     table = pa.table(
         [pa.array(arr, type=pa.float64(), from_pandas=True) for arr in arrays], names=names
@@ -245,10 +256,7 @@ def encode_batch_arrow(
     sample_rate_hz: float | None = None,
 ) -> EncodedBatch:
     """Arrow IPC stream, one record batch of float64 columns (``t`` first when given)."""
-    t_arr, columns = _as_float_columns(channels, t_s)
-    time_params = _time_params(t_arr, t0, sample_rate_hz)
-    names = (["t"] if t_arr is not None else []) + list(columns)
-    arrays = ([t_arr] if t_arr is not None else []) + list(columns.values())
+    names, arrays, time_params = _table_columns(channels, t_s, t0, sample_rate_hz)
     record_batch = pa.record_batch(
         [pa.array(arr, type=pa.float64()) for arr in arrays], names=names
     )
