@@ -107,18 +107,83 @@ class EstimatorEvent:
 
 
 @dataclass(frozen=True)
+class RulEstimate:
+    """A remaining-useful-life prognosis made at stream time ``t_s``.
+
+    Times are seconds of stream time from ``t_s`` until the health quantity reaches
+    ``threshold``; None when the threshold is not reached within the prediction horizon by
+    enough trajectories to define the statistic.
+
+    Attributes:
+        t_s: stream time the prognosis was made at.
+        mean_s, std_s: mean and standard deviation of the Monte Carlo RUL.
+        q05_s, q50_s, q95_s: 5, 50 and 95 % quantiles.
+        optimistic_s, pessimistic_s: deterministic bounds (e.g. from the +-3 sigma states).
+        threshold: failure threshold on the health quantity.
+        health: the health quantity now, with bounds, e.g. ``{"dn": .., "dn_lower": ..}``.
+        assumption: the future-load assumption and Monte Carlo settings, JSON-serializable.
+        status: status implied by this prognosis against the configured RUL / health levels.
+        reasons: human-readable reasons for a non-ok status.
+    """
+
+    t_s: float
+    mean_s: float | None
+    std_s: float | None
+    q05_s: float | None
+    q50_s: float | None
+    q95_s: float | None
+    optimistic_s: float | None
+    pessimistic_s: float | None
+    threshold: float
+    health: dict[str, float | None]
+    assumption: dict[str, Any]
+    status: Status = "ok"
+    reasons: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class Diagnosis:
+    """The estimator's current diagnostic picture; each one replaces the previous.
+
+    ``detail`` is JSON-serializable and estimator-specific: hypothesis probabilities and active
+    faults (filter banks), residual status, coherence vector, candidate fault sets and parameter
+    estimates with bounds (residual-based isolation).
+    """
+
+    t_s: float
+    detail: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class StatusReport:
+    """The estimator's status at the end of a batch, when it reports one directly."""
+
+    status: Status
+    reasons: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
 class StepOutputs:
     """What one ``step`` produced.
 
     Attributes:
         samples: per-sample outputs, name -> array of shape (n,) aligned with ``batch.t_s``.
         health: windows completed during this batch, in time order.
-        events: events raised during this batch, in time order.
+        events: events raised during this batch, in time order. Fault isolation uses the kinds
+            ``"fault_detected"`` and ``"fault_cleared"``; their ``detail`` names the faulty
+            component (``"component"``) and what is known of the fault.
+        rul: RUL prognoses made during this batch, in time order.
+        diagnosis: the diagnostic picture at the end of this batch (None: unchanged).
+        status: the estimator's status at the end of this batch. None means the status of the
+            last health window (or RUL estimate) stands.
     """
 
     samples: dict[str, FloatArray]
     health: Sequence[HealthWindow] = ()
     events: Sequence[EstimatorEvent] = ()
+    rul: Sequence[RulEstimate] = ()
+    diagnosis: Diagnosis | None = None
+    status: StatusReport | None = None
 
 
 class EstimatorKind(Protocol):
