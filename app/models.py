@@ -90,6 +90,8 @@ class Actuator(Base):
     # What the telemetry log holds; written by ingest under a lock on this row.
     last_logged_seq: Mapped[int] = mapped_column(BigInteger, default=0)
     last_logged_t_s: Mapped[float | None] = mapped_column(Float, nullable=True)
+    # The highest client sequence number of a streamed frame logged (WebSocket resume).
+    last_client_seq: Mapped[int | None] = mapped_column(BigInteger, nullable=True)
 
     aircraft: Mapped[Aircraft] = relationship(back_populates="actuators", lazy="raise")
     stream: Mapped[Stream] = relationship(lazy="raise", uselist=False)
@@ -107,6 +109,10 @@ class Stream(Base):
     last_applied_t_s: Mapped[float | None] = mapped_column(Float, nullable=True)
     status: Mapped[str] = mapped_column(String(8), default="ok")
     updated_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    # The latest RUL prognosis of any estimator (the smallest 5 % quantile), for the fleet board.
+    rul_t_s: Mapped[float | None] = mapped_column(Float, nullable=True)
+    rul_q05_s: Mapped[float | None] = mapped_column(Float, nullable=True)
+    rul_q50_s: Mapped[float | None] = mapped_column(Float, nullable=True)
 
 
 class EstimatorState(Base):
@@ -122,6 +128,9 @@ class EstimatorState(Base):
     applied_seq: Mapped[int] = mapped_column(BigInteger, default=0)
     status: Mapped[str] = mapped_column(String(8), default="ok")
     reasons: Mapped[list[str]] = mapped_column(JSON, default=list)
+    # The estimator's latest diagnostic picture (fault isolation), replaced on each batch.
+    diagnosis_t_s: Mapped[float | None] = mapped_column(Float, nullable=True)
+    diagnosis: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
 
 
 class TelemetryBatch(Base):
@@ -185,3 +194,27 @@ class EstimatorEventRow(Base):
     t_s: Mapped[float] = mapped_column(Float)
     kind: Mapped[str] = mapped_column(String(48))
     detail: Mapped[dict[str, Any]] = mapped_column(JSON)
+
+
+class RulEstimateRow(Base):
+    """One remaining-useful-life prognosis; times are seconds of stream time."""
+
+    __tablename__ = "rul_estimates"
+    __table_args__ = (Index("ix_rul_estimates_stream_time", "actuator_pk", "estimator", "t_s"),)
+    id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"), primary_key=True)
+    actuator_pk: Mapped[int] = mapped_column(ForeignKey("actuators.id", ondelete="CASCADE"))
+    estimator: Mapped[str] = mapped_column(String(32))
+    seq: Mapped[int] = mapped_column(BigInteger)
+    t_s: Mapped[float] = mapped_column(Float)
+    mean_s: Mapped[float | None] = mapped_column(Float, nullable=True)
+    std_s: Mapped[float | None] = mapped_column(Float, nullable=True)
+    q05_s: Mapped[float | None] = mapped_column(Float, nullable=True)
+    q50_s: Mapped[float | None] = mapped_column(Float, nullable=True)
+    q95_s: Mapped[float | None] = mapped_column(Float, nullable=True)
+    optimistic_s: Mapped[float | None] = mapped_column(Float, nullable=True)
+    pessimistic_s: Mapped[float | None] = mapped_column(Float, nullable=True)
+    threshold: Mapped[float] = mapped_column(Float)
+    health: Mapped[dict[str, Any]] = mapped_column(JSON)
+    assumption: Mapped[dict[str, Any]] = mapped_column(JSON)
+    status: Mapped[str] = mapped_column(String(8))
+    reasons: Mapped[list[str]] = mapped_column(JSON)

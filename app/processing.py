@@ -16,7 +16,7 @@ import queue
 import threading
 import time
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -33,12 +33,13 @@ from app.models import (
     EstimatorEventRow,
     EstimatorState,
     HealthWindowRow,
+    RulEstimateRow,
     SampleOutputRow,
     Stream,
     TelemetryBatch,
     utcnow,
 )
-from estimators.base import Batch, worst_status
+from estimators.base import Batch, RulEstimate, worst_status
 from estimators.registry import ESTIMATORS
 
 log = logging.getLogger("fleethealth.processor")
@@ -61,11 +62,98 @@ def _clean(value: Any) -> Any:
     return value
 
 
+def _clean_json(value: Any) -> Any:
+    """A JSON-safe deep copy: non-finite floats become None, numpy scalars plain numbers."""
+    if isinstance(value, dict):
+        return {str(k): _clean_json(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_clean_json(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return [_clean_json(v) for v in value.tolist()]
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
+    return _clean(value)
+
+
+def _window_row(base: dict[str, Any], w: Any) -> dict[str, Any]:
+    return dict(
+        base,
+        t_start_s=float(w.t_start_s),
+        t_end_s=float(w.t_end_s),
+        n_samples=int(w.n_samples),
+        indicators={k: _clean(v) for k, v in w.indicators.items()},
+        status=w.status,
+        reasons=list(w.reasons),
+    )
+
+
+def _opt(x: float | None) -> float | None:
+    return None if x is None else _clean(float(x))
+
+
+def _rul_row(base: dict[str, Any], r: RulEstimate) -> dict[str, Any]:
+    return dict(
+        base,
+        t_s=float(r.t_s),
+        mean_s=_opt(r.mean_s),
+        std_s=_opt(r.std_s),
+        q05_s=_opt(r.q05_s),
+        q50_s=_opt(r.q50_s),
+        q95_s=_opt(r.q95_s),
+        optimistic_s=_opt(r.optimistic_s),
+        pessimistic_s=_opt(r.pessimistic_s),
+        threshold=float(r.threshold),
+        health=_clean_json(r.health),
+        assumption=_clean_json(r.assumption),
+        status=r.status,
+        reasons=list(r.reasons),
+    )
+
+
+def _public(row: dict[str, Any]) -> dict[str, Any]:
+    """A stored row as subscribers see it (no internal keys, no blobs)."""
+    return {k: v for k, v in row.items() if k not in ("actuator_pk", "payload")}
+
+
+def _update_stream_rul(stream: Stream, rul_rows: list[dict[str, Any]]) -> None:
+    """Keep the fleet board's RUL: per estimator the latest prognosis, across estimators the most
+    urgent (smallest 5 % quantile)."""
+    latest: dict[str, dict[str, Any]] = {}
+    for r in rul_rows:
+        latest[r["estimator"]] = r
+    best = min(
+        latest.values(),
+        key=lambda r: (r["q05_s"] is None, r["q05_s"] if r["q05_s"] is not None else 0.0),
+    )
+    stream.rul_t_s = best["t_s"]
+    stream.rul_q05_s = best["q05_s"]
+    stream.rul_q50_s = best["q50_s"]
+
+
+@dataclass
+class AppliedBatch:
+    """What applying one logged batch produced, for subscribers (JSON-safe)."""
+
+    seq: int
+    t_first_s: float
+    t_last_s: float
+    n_samples: int
+    status: str
+    estimators: dict[str, dict[str, Any]]
+
+
 @dataclass
 class ApplyResult:
     batches: int
     samples: int
     last_applied_seq: int
+    actuator_pk: int = 0
+    applied: list[AppliedBatch] = field(default_factory=list)
+    # Status before and after this transaction (fleet subscribers hear about changes).
+    status_before: str = "ok"
+    status_after: str = "ok"
 
 
 def apply_pending(
@@ -111,72 +199,96 @@ def apply_pending(
     health_rows: list[dict[str, Any]] = []
     output_rows: list[dict[str, Any]] = []
     event_rows: list[dict[str, Any]] = []
+    rul_rows: list[dict[str, Any]] = []
+    applied: list[AppliedBatch] = []
+    status_before = stream.status
     now = utcnow()
     for row in pending:
         assert row.payload is not None, "a pending batch lost its payload"
         cols = decode_columns(row.payload)
         t_s = cols.pop(TIME_COLUMN)
         batch = Batch(t_s=t_s, channels=cols)
+        per_est: dict[str, dict[str, Any]] = {}
         for runner in runners:
             er, module, cfg, state = runner
             state, out = module.step(cfg, state, batch)
             runner[3] = state
+            base = dict(actuator_pk=actuator_pk, estimator=er.estimator, seq=row.seq)
+            windows = [_window_row(base, w) for w in out.health]
+            health_rows.extend(windows)
             for w in out.health:
-                health_rows.append(
-                    dict(
-                        actuator_pk=actuator_pk,
-                        estimator=er.estimator,
-                        seq=row.seq,
-                        t_start_s=float(w.t_start_s),
-                        t_end_s=float(w.t_end_s),
-                        n_samples=int(w.n_samples),
-                        indicators={k: _clean(v) for k, v in w.indicators.items()},
-                        status=w.status,
-                        reasons=list(w.reasons),
-                    )
-                )
                 er.status, er.reasons = w.status, list(w.reasons)
-            for ev in out.events:
-                event_rows.append(
-                    dict(
-                        actuator_pk=actuator_pk,
-                        estimator=er.estimator,
-                        seq=row.seq,
-                        t_s=float(ev.t_s),
-                        kind=ev.kind,
-                        detail={k: _clean(v) for k, v in ev.detail.items()},
-                    )
-                )
+            events = [
+                dict(base, t_s=float(ev.t_s), kind=ev.kind, detail=_clean_json(ev.detail)) for ev in out.events
+            ]
+            event_rows.extend(events)
+            ruls = [_rul_row(base, r) for r in out.rul]
+            rul_rows.extend(ruls)
+            for r in out.rul:
+                er.status, er.reasons = r.status, list(r.reasons)
+            if out.status is not None:
+                er.status, er.reasons = out.status.status, list(out.status.reasons)
+            if out.diagnosis is not None:
+                er.diagnosis_t_s = float(out.diagnosis.t_s)
+                er.diagnosis = _clean_json(out.diagnosis.detail)
             if store_outputs and out.samples:
                 output_rows.append(
                     dict(
-                        actuator_pk=actuator_pk,
-                        estimator=er.estimator,
-                        seq=row.seq,
+                        base,
                         t_first_s=row.t_first_s,
                         t_last_s=row.t_last_s,
                         n_samples=row.n_samples,
                         payload=encode_columns({TIME_COLUMN: t_s, **out.samples}),
                     )
                 )
+            per_est[er.estimator] = {
+                "status": er.status,
+                "reasons": list(er.reasons),
+                "last": {k: _clean(v[-1]) for k, v in out.samples.items() if len(v)},
+                "health": [_public(w) for w in windows],
+                "events": [_public(e) for e in events],
+                "rul": [_public(r) for r in ruls],
+                "diagnosis": _clean_json(out.diagnosis.detail) if out.diagnosis is not None else None,
+            }
         row.applied_at = now
+        applied.append(
+            AppliedBatch(
+                seq=row.seq,
+                t_first_s=row.t_first_s,
+                t_last_s=row.t_last_s,
+                n_samples=row.n_samples,
+                status=worst_status([er.status for er in est_rows]),
+                estimators=per_est,
+            )
+        )
 
     for rows, model in (
         (health_rows, HealthWindowRow),
         (output_rows, SampleOutputRow),
         (event_rows, EstimatorEventRow),
+        (rul_rows, RulEstimateRow),
     ):
         if rows:
             session.execute(insert(model), rows)
     for er, module, _cfg, state in runners:
         er.state = module.dump_state(state)
         er.applied_seq = pending[-1].seq
+    if rul_rows:
+        _update_stream_rul(stream, rul_rows)
     stream.last_applied_seq = pending[-1].seq
     stream.last_applied_t_s = pending[-1].t_last_s
     stream.status = worst_status([er.status for er in est_rows])
     stream.updated_at = now
     session.flush()
-    return ApplyResult(batches=len(pending), samples=total, last_applied_seq=stream.last_applied_seq)
+    return ApplyResult(
+        batches=len(pending),
+        samples=total,
+        last_applied_seq=stream.last_applied_seq,
+        actuator_pk=actuator_pk,
+        applied=applied,
+        status_before=status_before,
+        status_after=stream.status,
+    )
 
 
 def pending_streams(session: Session) -> list[int]:

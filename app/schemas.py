@@ -121,6 +121,14 @@ class FleetActuator(BaseModel):
     last_logged_seq: int
     last_applied_seq: int
     updated_at: datetime | None
+    rul_q05_s: float | None = Field(
+        default=None, description="5 % quantile of the latest RUL prognosis, seconds of stream time"
+    )
+    rul_q50_s: float | None = Field(default=None, description="Median of the latest RUL prognosis")
+    rul_t_s: float | None = Field(default=None, description="Stream time of the latest RUL prognosis")
+    active_faults: list[str] = Field(
+        default_factory=list, description="Components with a detected, not yet cleared, fault"
+    )
 
 
 class FleetAircraft(BaseModel):
@@ -157,3 +165,48 @@ class KindPublic(BaseModel):
 
 class KindList(BaseModel):
     items: list[KindPublic]
+
+
+class RulEstimatePublic(BaseModel):
+    estimator: str
+    seq: int = Field(description="Stream sequence number of the batch that produced it")
+    t_s: float = Field(description="Stream time the prognosis was made at")
+    mean_s: float | None = Field(description="Mean RUL, seconds (None: threshold beyond the horizon)")
+    std_s: float | None
+    q05_s: float | None
+    q50_s: float | None
+    q95_s: float | None
+    optimistic_s: float | None
+    pessimistic_s: float | None
+    threshold: float = Field(description="Failure threshold on the health quantity")
+    health: dict[str, float | None] = Field(description="Health quantity now, with bounds")
+    assumption: dict[str, Any] = Field(description="Future-load assumption and Monte Carlo settings")
+    status: StatusT
+    reasons: list[str]
+
+
+class ActuatorRul(BaseModel):
+    tail: str
+    actuator_id: str
+    latest: dict[str, RulEstimatePublic] = Field(description="Estimator -> its latest prognosis")
+    items: list[RulEstimatePublic] = Field(description="Prognoses in [from_s, to_s], oldest first")
+    truncated: bool
+
+
+class EstimatorDiagnosis(BaseModel):
+    status: StatusT
+    reasons: list[str]
+    t_s: float | None = Field(description="Stream time of the diagnosis")
+    diagnosis: dict[str, Any] | None = Field(
+        description="Estimator-specific: hypothesis probabilities, residuals, coherence vector, "
+        "candidate fault sets, parameter estimates with bounds"
+    )
+
+
+class ActuatorFaults(BaseModel):
+    tail: str
+    actuator_id: str
+    status: StatusT
+    active_faults: list[EventPublic] = Field(description="Detections not yet cleared")
+    estimators: dict[str, EstimatorDiagnosis]
+    events: list[EventPublic] = Field(description="Fault detections and clearances, oldest first")

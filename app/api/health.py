@@ -95,13 +95,61 @@ async def actuator_events(
     return await run_in_threadpool(_do)
 
 
+@router.get(f"{ACT}/rul", response_model=schemas.ActuatorRul, responses=error_responses(401, 403, 404))
+async def actuator_rul(
+    tail: str,
+    actuator_id: str,
+    db: DbDep,
+    p: ReadDep,
+    estimator: str | None = None,
+    from_s: Annotated[float | None, Query(description="Stream time, seconds")] = None,
+    to_s: Annotated[float | None, Query(description="Stream time, seconds")] = None,
+    limit: Annotated[int, Query(ge=1, le=100_000)] = 1000,
+) -> schemas.ActuatorRul:
+    """Remaining useful life: the latest prognosis of each estimator, and the prognoses made in
+    [from_s, to_s] (oldest first). Times are seconds of stream time; a null RUL means the failure
+    threshold is not reached within the prediction horizon."""
+
+    def _do() -> schemas.ActuatorRul:
+        with db.read() as s:
+            act = fleet.get_actuator(s, p.operator_id, tail, actuator_id)
+            return schemas.ActuatorRul.model_validate(
+                queries.rul(s, tail, act, estimator, from_s, to_s, limit)
+            )
+
+    return await run_in_threadpool(_do)
+
+
+@router.get(f"{ACT}/faults", response_model=schemas.ActuatorFaults, responses=error_responses(401, 403, 404))
+async def actuator_faults(
+    tail: str,
+    actuator_id: str,
+    db: DbDep,
+    p: ReadDep,
+    limit: Annotated[int, Query(ge=1, le=100_000, description="Most recent fault events")] = 1000,
+) -> schemas.ActuatorFaults:
+    """Fault isolation: each estimator's current diagnosis (hypothesis probabilities, residual
+    status, coherence vector, candidate fault sets, parameter estimates with bounds), the faults
+    detected and not yet cleared, and the fault events."""
+
+    def _do() -> schemas.ActuatorFaults:
+        with db.read() as s:
+            act = fleet.get_actuator(s, p.operator_id, tail, actuator_id)
+            return schemas.ActuatorFaults.model_validate(queries.faults(s, tail, act, limit))
+
+    return await run_in_threadpool(_do)
+
+
 @router.get("/fleet/health", response_model=schemas.FleetHealth, responses=error_responses(401, 403, 422))
 async def fleet_health(
-    db: DbDep, p: ReadDep, sort: Literal["status", "tail", "updated"] = "status"
+    db: DbDep, p: ReadDep, sort: Literal["status", "tail", "updated", "rul"] = "status"
 ) -> schemas.FleetHealth:
-    """Every aircraft of the operator with its actuators and worst status.
+    """Every aircraft of the operator with its actuators, worst status, latest RUL and active
+    faults.
 
-    `sort=status` lists the worst first; `tail` alphabetically; `updated` most recent first.
+    `sort=status` lists the worst first; `tail` alphabetically; `updated` most recent first;
+    `rul` the shortest remaining useful life first (by the 5 % quantile of the latest prognosis;
+    actuators without one last): the actuators to replace first.
     """
 
     def _do() -> schemas.FleetHealth:

@@ -17,6 +17,7 @@ from app.models import (
     EstimatorEventRow,
     EstimatorState,
     HealthWindowRow,
+    RulEstimateRow,
     SampleOutputRow,
     Stream,
 )
@@ -151,13 +152,121 @@ def events(
     if to_s is not None:
         stmt = stmt.where(EstimatorEventRow.t_s <= to_s)
     rows = session.scalars(stmt.order_by(EstimatorEventRow.t_s, EstimatorEventRow.id).limit(limit))
-    return [
-        {"estimator": r.estimator, "seq": r.seq, "t_s": r.t_s, "kind": r.kind, "detail": r.detail}
-        for r in rows
-    ]
+    return [_event(r) for r in rows]
 
 
-FLEET_SORTS = ("status", "tail", "updated")
+FAULT_EVENT_KINDS = ("fault_detected", "fault_cleared")
+
+
+def _event(r: EstimatorEventRow) -> dict[str, Any]:
+    return {"estimator": r.estimator, "seq": r.seq, "t_s": r.t_s, "kind": r.kind, "detail": r.detail}
+
+
+def _open_faults(rows: list[EstimatorEventRow]) -> list[EstimatorEventRow]:
+    """Detections with no later clearance of the same component by the same estimator."""
+    open_: dict[tuple[str, str], EstimatorEventRow] = {}
+    for r in rows:
+        key = (r.estimator, str(r.detail.get("component")))
+        if r.kind == "fault_detected":
+            open_[key] = r
+        else:
+            open_.pop(key, None)
+    return sorted(open_.values(), key=lambda r: (r.t_s, r.id))
+
+
+def _fault_rows(session: Session, actuator_pks: list[int]) -> dict[int, list[EstimatorEventRow]]:
+    out: dict[int, list[EstimatorEventRow]] = {pk: [] for pk in actuator_pks}
+    if not actuator_pks:
+        return out
+    for r in session.scalars(
+        select(EstimatorEventRow)
+        .where(EstimatorEventRow.actuator_pk.in_(actuator_pks), EstimatorEventRow.kind.in_(FAULT_EVENT_KINDS))
+        .order_by(EstimatorEventRow.t_s, EstimatorEventRow.id)
+    ):
+        out[r.actuator_pk].append(r)
+    return out
+
+
+def faults(session: Session, tail: str, act: Actuator, limit: int) -> dict[str, Any]:
+    stream = session.get(Stream, act.id)
+    assert stream is not None
+    rows = _fault_rows(session, [act.id])[act.id]
+    estimators = {
+        er.estimator: {
+            "status": er.status,
+            "reasons": er.reasons,
+            "t_s": er.diagnosis_t_s,
+            "diagnosis": er.diagnosis,
+        }
+        for er in session.scalars(
+            select(EstimatorState).where(EstimatorState.actuator_pk == act.id).order_by(EstimatorState.estimator)
+        )
+    }
+    return {
+        "tail": tail,
+        "actuator_id": act.actuator_id,
+        "status": stream.status,
+        "active_faults": [_event(r) for r in _open_faults(rows)],
+        "estimators": estimators,
+        "events": [_event(r) for r in rows[-limit:]],
+    }
+
+
+def _rul(r: RulEstimateRow) -> dict[str, Any]:
+    return {
+        c: getattr(r, c)
+        for c in (
+            "estimator", "seq", "t_s", "mean_s", "std_s", "q05_s", "q50_s", "q95_s",
+            "optimistic_s", "pessimistic_s", "threshold", "health", "assumption", "status", "reasons",
+        )
+    }
+
+
+def rul(
+    session: Session,
+    tail: str,
+    act: Actuator,
+    estimator: str | None,
+    from_s: float | None,
+    to_s: float | None,
+    limit: int,
+) -> dict[str, Any]:
+    _check_estimator(session, act, estimator)
+    names = [estimator] if estimator is not None else list(
+        session.scalars(select(EstimatorState.estimator).where(EstimatorState.actuator_pk == act.id))
+    )
+    latest: dict[str, Any] = {}
+    for name in sorted(names):
+        last = session.scalar(
+            select(RulEstimateRow)
+            .where(RulEstimateRow.actuator_pk == act.id, RulEstimateRow.estimator == name)
+            .order_by(RulEstimateRow.t_s.desc())
+            .limit(1)
+        )
+        if last is not None:
+            latest[name] = _rul(last)
+    stmt = select(RulEstimateRow).where(RulEstimateRow.actuator_pk == act.id)
+    if estimator is not None:
+        stmt = stmt.where(RulEstimateRow.estimator == estimator)
+    if from_s is not None:
+        stmt = stmt.where(RulEstimateRow.t_s >= from_s)
+    if to_s is not None:
+        stmt = stmt.where(RulEstimateRow.t_s <= to_s)
+    rows = list(session.scalars(stmt.order_by(RulEstimateRow.t_s, RulEstimateRow.id).limit(limit + 1)))
+    return {
+        "tail": tail,
+        "actuator_id": act.actuator_id,
+        "latest": latest,
+        "items": [_rul(r) for r in rows[:limit]],
+        "truncated": len(rows) > limit,
+    }
+
+
+FLEET_SORTS = ("status", "tail", "updated", "rul")
+
+
+def _rul_key(q05: float | None) -> tuple[bool, float]:
+    return (q05 is None, q05 if q05 is not None else 0.0)
 
 
 def fleet_health(session: Session, operator_id: int, sort: str) -> list[dict[str, Any]]:
@@ -171,14 +280,19 @@ def fleet_health(session: Session, operator_id: int, sort: str) -> list[dict[str
             Stream.last_applied_seq,
             Stream.last_applied_t_s,
             Stream.updated_at,
+            Stream.rul_q05_s,
+            Stream.rul_q50_s,
+            Stream.rul_t_s,
+            Actuator.id,
         )
         .join(Actuator, Actuator.aircraft_id == Aircraft.id, isouter=True)
         .join(Stream, Stream.actuator_pk == Actuator.id, isouter=True)
         .where(Aircraft.operator_id == operator_id)
         .order_by(Aircraft.tail, Actuator.actuator_id)
     ).all()
+    fault_rows = _fault_rows(session, [r[-1] for r in rows if r[-1] is not None])
     by_tail: dict[str, dict[str, Any]] = {}
-    for tail, act_id, kind, logged, status, applied, t_last, updated in rows:
+    for tail, act_id, kind, logged, status, applied, t_last, updated, q05, q50, rul_t, pk in rows:
         ac = by_tail.setdefault(tail, {"tail": tail, "status": "ok", "updated_at": None, "actuators": []})
         if act_id is None:
             continue
@@ -191,14 +305,30 @@ def fleet_health(session: Session, operator_id: int, sort: str) -> list[dict[str
                 "last_logged_seq": logged,
                 "last_applied_seq": applied,
                 "updated_at": updated,
+                "rul_q05_s": q05,
+                "rul_q50_s": q50,
+                "rul_t_s": rul_t,
+                "active_faults": sorted(
+                    {str(r.detail.get("component")) for r in _open_faults(fault_rows[pk])}
+                ),
             }
         )
     for ac in by_tail.values():
         ac["status"] = worst_status([a["status"] for a in ac["actuators"]])
         ups = [a["updated_at"] for a in ac["actuators"] if a["updated_at"] is not None]
         ac["updated_at"] = max(ups) if ups else None
-        ac["actuators"].sort(key=lambda a: (-STATUS_ORDER[a["status"]], a["actuator_id"]))
+        if sort == "rul":
+            ac["actuators"].sort(key=lambda a: (*_rul_key(a["rul_q05_s"]), a["actuator_id"]))
+        else:
+            ac["actuators"].sort(key=lambda a: (-STATUS_ORDER[a["status"]], a["actuator_id"]))
     out = list(by_tail.values())
+    if sort == "rul":
+        out.sort(
+            key=lambda a: (
+                *_rul_key(min((x["rul_q05_s"] for x in a["actuators"] if x["rul_q05_s"] is not None), default=None)),
+                a["tail"],
+            )
+        )
     if sort == "status":
         out.sort(key=lambda a: (-STATUS_ORDER[a["status"]], a["tail"]))
     elif sort == "updated":
