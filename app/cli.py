@@ -58,7 +58,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
     else:
         print(f"fleethealth serving on {url} (API docs at {url}/docs)", flush=True)
     try:
-        uvicorn.run(create_app(s), host=host, port=port, log_level=args.log_level)
+        uvicorn.run(
+            create_app(s), host=host, port=port, log_level=args.log_level, ws_max_size=s.ws_max_frame_bytes
+        )
     finally:
         stop.set()
     return 0

@@ -30,6 +30,13 @@ class Settings(BaseSettings):
     store_sample_outputs: bool = True
     log_retention_s: float | None = Field(default=None, gt=0)
     warm_kernels: bool = True
+    # WebSocket streaming (docs/api.md, "Streaming").
+    ws_max_frame_bytes: int = Field(default=16 * 1024 * 1024, gt=0)
+    ws_max_inflight: int = Field(default=16, gt=0)
+    ws_subscriber_queue: int = Field(default=1000, gt=0)
+    ws_auth_timeout_s: float = Field(default=10.0, gt=0)
+    ws_close_timeout_s: float = Field(default=10.0, gt=0)
+    ws_result_poll_s: float = Field(default=1.0, gt=0)
 
     @field_validator("bootstrap_admin_key")
     @classmethod

@@ -80,13 +80,80 @@ def parse_body(
     return _validate(batch_id, t_s, columns, expected_channels, max_samples)
 
 
-def _batch_id(value: Any) -> str:
+def _batch_id(value: Any, *, frame: bool = False) -> str:
     if not isinstance(value, str) or not value.strip():
         raise InvalidBatch("batch_id is required: a non-empty string (JSON field, query parameter "
                            "batch_id or header Idempotency-Key)")
     if len(value) > MAX_BATCH_ID_LEN:
         raise InvalidBatch(f"batch_id is longer than {MAX_BATCH_ID_LEN} characters")
+    if not frame and value.startswith(FRAME_ID_PREFIX):
+        raise InvalidBatch(f"batch ids starting with {FRAME_ID_PREFIX!r} are reserved for streamed frames")
     return value
+
+
+# ----------------------------------------------------------------------------- streamed frames
+FRAME_ID_PREFIX = "ws-"
+
+
+def frame_batch_id(client_seq: int) -> str:
+    """The log's batch id of a streamed frame: retries of a frame are idempotent like batches."""
+    return f"{FRAME_ID_PREFIX}{client_seq}"
+
+
+def client_seq_of(batch_id: str) -> int | None:
+    if batch_id.startswith(FRAME_ID_PREFIX) and batch_id[len(FRAME_ID_PREFIX):].isdigit():
+        return int(batch_id[len(FRAME_ID_PREFIX):])
+    return None
+
+
+class UnsupportedFrame(InvalidBatch):
+    """A message that is not a frame of samples (the stream closes with 1003)."""
+
+
+def _client_seq(value: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1 or value >= 2**63:
+        raise InvalidBatch("client_seq must be an integer >= 1, increasing by frame")
+    return value
+
+
+def parse_frame(
+    data: str | bytes, expected_channels: Sequence[str], max_samples: int
+) -> tuple[int, ParsedBatch]:
+    """A WebSocket frame of samples -> (client_seq, batch).
+
+    Text frames are JSON: ``{"type": "samples", "client_seq": n, "t": [...] | "t0" +
+    "sample_rate_hz", "channels": {...}}``. Binary frames are an Arrow IPC stream whose schema
+    metadata holds ``client_seq`` (and ``t0`` / ``sample_rate_hz`` when there is no ``t``
+    column).
+    """
+    if isinstance(data, str):
+        try:
+            doc = orjson.loads(data)
+        except orjson.JSONDecodeError as exc:
+            raise InvalidBatch(f"frame is not valid JSON (send null for a missing sample): {exc}") from None
+        if not isinstance(doc, dict):
+            raise InvalidBatch("a frame must be a JSON object")
+        if doc.get("type") != "samples":
+            raise UnsupportedFrame(f"unexpected message type {doc.get('type')!r}; frames have type 'samples'")
+        seq = _client_seq(doc.get("client_seq"))
+        body = {k: v for k, v in doc.items() if k not in ("type", "client_seq")}
+        if "batch_id" in body:
+            raise InvalidBatch("frames carry client_seq, not batch_id")
+        batch_id, t_s, columns = _parse_json_doc(body, TimeParams(frame_batch_id(seq), None, None), frame=True)
+    else:
+        table = _read_arrow(data)
+        meta = {k.decode(): v.decode() for k, v in (table.schema.metadata or {}).items()}
+        try:
+            seq = _client_seq(int(meta["client_seq"]))
+            t0 = float(meta["t0"]) if "t0" in meta else None
+            rate = float(meta["sample_rate_hz"]) if "sample_rate_hz" in meta else None
+        except KeyError:
+            raise InvalidBatch("the Arrow schema metadata must hold client_seq") from None
+        except ValueError as exc:
+            raise InvalidBatch(f"bad Arrow schema metadata: {exc}") from None
+        table = table.replace_schema_metadata(None)
+        batch_id, t_s, columns = _parse_table(table, TimeParams(frame_batch_id(seq), t0, rate), frame=True)
+    return seq, _validate(batch_id, t_s, columns, expected_channels, max_samples)
 
 
 def _to_float_array(values: Any, name: str) -> np.ndarray:
@@ -121,10 +188,16 @@ def _parse_json(body: bytes, params: TimeParams) -> tuple[str, np.ndarray | None
                            f"for a missing sample): {exc}") from None
     if not isinstance(doc, dict):
         raise InvalidBatch("body must be a JSON object with batch_id and channels")
+    return _parse_json_doc(doc, params)
+
+
+def _parse_json_doc(
+    doc: dict[str, Any], params: TimeParams, *, frame: bool = False
+) -> tuple[str, np.ndarray | None, dict[str, np.ndarray]]:
     unknown = set(doc) - {"batch_id", "t", "t0", "sample_rate_hz", "channels"}
     if unknown:
         raise InvalidBatch(f"unknown fields: {', '.join(sorted(unknown))}")
-    batch_id = _batch_id(doc.get("batch_id", params.batch_id))
+    batch_id = _batch_id(doc.get("batch_id", params.batch_id), frame=frame)
     chans = doc.get("channels")
     if not isinstance(chans, dict) or not chans:
         raise InvalidBatch("channels must be a non-empty object {name: [values]}")
@@ -171,8 +244,10 @@ def _read_arrow(body: bytes) -> pa.Table:
         raise InvalidBatch(f"body is not an Arrow IPC stream: {exc}") from None
 
 
-def _parse_table(table: pa.Table, params: TimeParams) -> tuple[str, np.ndarray | None, dict[str, np.ndarray]]:
-    batch_id = _batch_id(params.batch_id)
+def _parse_table(
+    table: pa.Table, params: TimeParams, *, frame: bool = False
+) -> tuple[str, np.ndarray | None, dict[str, np.ndarray]]:
+    batch_id = _batch_id(params.batch_id, frame=frame)
     names = table.column_names
     if len(set(names)) != len(names):
         raise InvalidBatch("column names repeat")

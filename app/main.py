@@ -10,7 +10,7 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 
 from app import __version__
-from app.api import fleet, health, system, telemetry
+from app.api import fleet, health, stream, system, telemetry
 from app.config import Settings, get_settings
 from app.db import Database
 from app.errors import install_handlers
@@ -80,4 +80,5 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(fleet.router)
     app.include_router(telemetry.router)
     app.include_router(health.router)
+    app.include_router(stream.router)
     return app

@@ -27,9 +27,11 @@ from sqlalchemy.orm import Session
 from app.codec import decode_columns, encode_columns
 from app.config import Settings
 from app.db import Database
+from app.hub import Hub, StreamMeta, fleet_events
 from app.ingest import TIME_COLUMN
 from app.models import (
     Actuator,
+    Aircraft,
     EstimatorEventRow,
     EstimatorState,
     HealthWindowRow,
@@ -137,11 +139,15 @@ class AppliedBatch:
     """What applying one logged batch produced, for subscribers (JSON-safe)."""
 
     seq: int
+    batch_id: str
     t_first_s: float
     t_last_s: float
     n_samples: int
     status: str
     estimators: dict[str, dict[str, Any]]
+    # Per-sample outputs (estimator -> name -> array) and their times, for subscribers asking.
+    t_s: np.ndarray | None = None
+    samples: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
 
 
 @dataclass
@@ -209,6 +215,7 @@ def apply_pending(
         t_s = cols.pop(TIME_COLUMN)
         batch = Batch(t_s=t_s, channels=cols)
         per_est: dict[str, dict[str, Any]] = {}
+        per_samples: dict[str, dict[str, np.ndarray]] = {}
         for runner in runners:
             er, module, cfg, state = runner
             state, out = module.step(cfg, state, batch)
@@ -241,6 +248,7 @@ def apply_pending(
                         payload=encode_columns({TIME_COLUMN: t_s, **out.samples}),
                     )
                 )
+            per_samples[er.estimator] = out.samples
             per_est[er.estimator] = {
                 "status": er.status,
                 "reasons": list(er.reasons),
@@ -254,11 +262,14 @@ def apply_pending(
         applied.append(
             AppliedBatch(
                 seq=row.seq,
+                batch_id=row.batch_id,
                 t_first_s=row.t_first_s,
                 t_last_s=row.t_last_s,
                 n_samples=row.n_samples,
                 status=worst_status([er.status for er in est_rows]),
                 estimators=per_est,
+                t_s=t_s,
+                samples=per_samples,
             )
         )
 
@@ -321,9 +332,11 @@ def drop_applied_payloads(session: Session, older_than_s: float) -> int:
 class Processor:
     """A background thread that applies pending batches, woken by ingest and by a periodic scan."""
 
-    def __init__(self, db: Database, settings: Settings) -> None:
+    def __init__(self, db: Database, settings: Settings, hub: Hub | None = None) -> None:
         self.db = db
         self.settings = settings
+        self.hub = hub or Hub()
+        self._meta: dict[int, StreamMeta] = {}
         self._queue: queue.SimpleQueue[int | None] = queue.SimpleQueue()
         self._applied: dict[int, int] = {}
         self._cond = threading.Condition()
@@ -405,7 +418,29 @@ class Processor:
             with self._cond:
                 self._applied[actuator_pk] = res.last_applied_seq
                 self._cond.notify_all()
+            self._publish(res)
         return applied
+
+    def _publish(self, res: ApplyResult) -> None:
+        """Tell subscribers what was committed (never blocks; a failure only loses pushes)."""
+        try:
+            self.hub.publish_applied(res.actuator_pk, res.applied)
+            if self.hub.has_fleet_subscribers():
+                self.hub.publish_fleet(fleet_events(self._stream_meta(res.actuator_pk), res))
+        except Exception:
+            log.exception("publishing results of stream %s failed", res.actuator_pk)
+
+    def _stream_meta(self, actuator_pk: int) -> StreamMeta:
+        meta = self._meta.get(actuator_pk)
+        if meta is None:
+            with self.db.read() as s:
+                row = s.execute(
+                    select(Aircraft.operator_id, Aircraft.tail, Actuator.actuator_id)
+                    .join(Actuator, Actuator.aircraft_id == Aircraft.id)
+                    .where(Actuator.id == actuator_pk)
+                ).one()
+            meta = self._meta[actuator_pk] = StreamMeta(row[0], row[1], row[2])
+        return meta
 
     def _run(self) -> None:
         next_scan = 0.0

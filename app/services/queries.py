@@ -20,6 +20,7 @@ from app.models import (
     RulEstimateRow,
     SampleOutputRow,
     Stream,
+    TelemetryBatch,
 )
 from estimators.base import STATUS_ORDER, worst_status
 
@@ -338,3 +339,72 @@ def fleet_health(session: Session, operator_id: int, sort: str) -> list[dict[str
 
 def count_streams(session: Session) -> int:
     return int(session.scalar(select(func.count()).select_from(Stream)) or 0)
+
+
+def applied_results(session: Session, actuator_pk: int, seqs: list[int]) -> list[dict[str, Any]]:
+    """What applying each of ``seqs`` produced, read back from the store (when the live push
+    was missed: another process applied the batch, or a subscriber queue overflowed).
+
+    Same shape as a live result; ``status`` is the estimator's status now, and ``last`` holds the
+    last per-sample outputs when they are stored.
+    """
+    if not seqs:
+        return []
+    lo, hi = min(seqs), max(seqs)
+    wanted = set(seqs)
+    batches = {
+        b.seq: b
+        for b in session.scalars(
+            select(TelemetryBatch).where(
+                TelemetryBatch.actuator_pk == actuator_pk, TelemetryBatch.seq.between(lo, hi)
+            )
+        )
+        if b.seq in wanted
+    }
+    ests = list(session.scalars(select(EstimatorState).where(EstimatorState.actuator_pk == actuator_pk)))
+
+    def by_seq(model: Any) -> dict[tuple[int, str], list[Any]]:
+        out: dict[tuple[int, str], list[Any]] = {}
+        for r in session.scalars(
+            select(model).where(model.actuator_pk == actuator_pk, model.seq.between(lo, hi)).order_by(model.id)
+        ):
+            out.setdefault((r.seq, r.estimator), []).append(r)
+        return out
+
+    windows, evs, ruls, outs = (
+        by_seq(HealthWindowRow),
+        by_seq(EstimatorEventRow),
+        by_seq(RulEstimateRow),
+        by_seq(SampleOutputRow),
+    )
+    results = []
+    for seq in sorted(wanted & set(batches)):
+        b = batches[seq]
+        per: dict[str, Any] = {}
+        for er in ests:
+            key = (seq, er.estimator)
+            last: dict[str, float | None] = {}
+            for o in outs.get(key, [])[-1:]:
+                cols = decode_columns(o.payload)
+                last = {k: (float(v[-1]) if np.isfinite(v[-1]) else None) for k, v in cols.items() if k != TIME_COLUMN}
+            per[er.estimator] = {
+                "status": er.status,
+                "reasons": er.reasons,
+                "last": last,
+                "health": [dict(_window(w)) for w in windows.get(key, [])],
+                "events": [_event(e) for e in evs.get(key, [])],
+                "rul": [_rul(r) for r in ruls.get(key, [])],
+                "diagnosis": None,
+            }
+        results.append(
+            {
+                "seq": seq,
+                "batch_id": b.batch_id,
+                "t_first_s": b.t_first_s,
+                "t_last_s": b.t_last_s,
+                "n_samples": b.n_samples,
+                "status": worst_status([er.status for er in ests]),
+                "estimators": per,
+            }
+        )
+    return results

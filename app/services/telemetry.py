@@ -12,7 +12,7 @@ from sqlalchemy.orm import Session
 
 from app.codec import encode_columns
 from app.errors import IdempotencyConflict, StaleBatch
-from app.ingest import TIME_COLUMN, ParsedBatch
+from app.ingest import TIME_COLUMN, ParsedBatch, client_seq_of
 from app.models import Actuator, TelemetryBatch
 
 
@@ -103,6 +103,9 @@ def append(session: Session, actuator: Actuator, batch: ParsedBatch) -> Ack:
         ) from None
     actuator.last_logged_seq = seq
     actuator.last_logged_t_s = float(batch.t_s[-1])
+    client_seq = client_seq_of(batch.batch_id)
+    if client_seq is not None:
+        actuator.last_client_seq = max(actuator.last_client_seq or 0, client_seq)
     session.flush()
     return _ack(row, replayed=False)
 

@@ -1,0 +1,430 @@
+"""WebSocket streaming: live ingest with results pushed back, and fleet event subscriptions.
+
+Frames enter the same telemetry log as REST batches (``app.services.telemetry.append`` under the
+actuator row lock, committed before the ``logged`` acknowledgement), so every invariant of the
+log holds for them: durable before ack, exactly once, in order, applied after a crash. The
+protocol is documented in docs/api.md ("Streaming").
+
+Close codes: 1003 a message that is not a frame; 1007 a frame whose samples are invalid; 1008
+authentication, authorization or a frame the log refuses (client_seq or time not after the last,
+same client_seq with other samples); 1009 a frame above ``ws_max_frame_bytes`` (by the server);
+1013 a fleet subscriber too slow for its bounded queue.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import orjson
+from fastapi import APIRouter, WebSocket, WebSocketDisconnect
+from prometheus_client import Counter, Gauge
+from sqlalchemy import select
+from starlette.concurrency import run_in_threadpool
+from starlette.websockets import WebSocketState
+
+from app.config import Settings
+from app.db import Database
+from app.errors import DomainError, IdempotencyConflict, InvalidBatch, StaleBatch
+from app.hub import ALL_FLEET_TYPES, DEFAULT_FLEET_TYPES, Hub, Subscription, public
+from app.ingest import FRAME_ID_PREFIX, UnsupportedFrame, client_seq_of, parse_frame
+from app.models import Actuator, Stream, TelemetryBatch
+from app.processing import AppliedBatch, Processor
+from app.security import Principal, authenticate
+from app.services import fleet, queries, telemetry
+
+log = logging.getLogger("fleethealth.stream")
+router = APIRouter(prefix="/v1")
+
+WS_CONNECTIONS = Gauge("fleethealth_ws_connections", "Open WebSocket connections", ["endpoint"])
+WS_FRAMES = Counter("fleethealth_ws_frames_total", "Streamed frames by outcome", ["outcome"])
+WS_DROPPED = Counter("fleethealth_ws_subscribers_dropped_total", "Fleet subscribers dropped as too slow")
+
+CLOSE_UNSUPPORTED = 1003
+CLOSE_INVALID = 1007
+CLOSE_POLICY = 1008
+CLOSE_TRY_LATER = 1013
+
+
+def _dumps(obj: Any) -> str:
+    return orjson.dumps(obj, option=orjson.OPT_SERIALIZE_NUMPY).decode()
+
+
+async def _send(ws: WebSocket, lock: asyncio.Lock, obj: dict[str, Any]) -> None:
+    async with lock:
+        await ws.send_text(_dumps(obj))
+
+
+async def _refuse(ws: WebSocket, code: int, error: str, detail: str, **extra: Any) -> None:
+    """Send an error message and close; a peer already gone is not an error."""
+    with contextlib.suppress(Exception):
+        await ws.send_text(_dumps({"type": "error", "error": error, "detail": detail, **extra}))
+        await ws.close(code=code, reason=error[:120])
+
+
+async def _authenticate(ws: WebSocket, db: Database, settings: Settings, scope: str) -> Principal | None:
+    """The key from the Authorization header or, for browsers, a first ``{"type": "auth",
+    "key": ...}`` message. Refuses (1008) and returns None when it fails."""
+    header = ws.headers.get("authorization")
+    if header is None:
+        try:
+            first = await asyncio.wait_for(ws.receive_text(), settings.ws_auth_timeout_s)
+            doc = orjson.loads(first)
+        except TimeoutError:
+            await _refuse(ws, CLOSE_POLICY, "Unauthorized", "no Authorization header and no auth message in time")
+            return None
+        except (orjson.JSONDecodeError, KeyError, RuntimeError, WebSocketDisconnect):
+            await _refuse(ws, CLOSE_POLICY, "Unauthorized", 'first message must be {"type": "auth", "key": "..."}')
+            return None
+        if not isinstance(doc, dict) or doc.get("type") != "auth" or not isinstance(doc.get("key"), str):
+            await _refuse(ws, CLOSE_POLICY, "Unauthorized", 'first message must be {"type": "auth", "key": "..."}')
+            return None
+        header = f"Bearer {doc['key']}"
+
+    def _auth() -> Principal:
+        with db.read() as s:
+            return authenticate(s, header)
+
+    try:
+        principal = await run_in_threadpool(_auth)
+        principal.require(scope)
+    except DomainError as exc:
+        await _refuse(ws, CLOSE_POLICY, exc.name, exc.detail)
+        return None
+    return principal
+
+
+# ----------------------------------------------------------------------------- ingest stream
+@dataclass
+class _StreamConn:
+    """One ingest connection: frames logged and waiting for their results, in stream order."""
+
+    ws: WebSocket
+    db: Database
+    settings: Settings
+    processor: Processor
+    actuator_pk: int
+    channels: list[str]
+    with_samples: bool
+    sub: Subscription
+    lock: asyncio.Lock = field(default_factory=asyncio.Lock)
+    inflight: OrderedDict[int, int | None] = field(default_factory=OrderedDict)  # seq -> client_seq
+    ready: dict[int, dict[str, Any]] = field(default_factory=dict)  # seq -> result message
+    window_free: asyncio.Event = field(default_factory=asyncio.Event)
+    inflight_added: asyncio.Event = field(default_factory=asyncio.Event)
+
+    # ------------------------------------------------------------------ results
+    def _message(self, ab: AppliedBatch) -> dict[str, Any]:
+        msg: dict[str, Any] = {
+            "type": "result",
+            "seq": ab.seq,
+            "client_seq": client_seq_of(ab.batch_id),
+            "t_first_s": ab.t_first_s,
+            "t_last_s": ab.t_last_s,
+            "n_samples": ab.n_samples,
+            "status": ab.status,
+            "estimators": ab.estimators,
+        }
+        if self.with_samples and ab.t_s is not None:
+            msg["samples"] = {
+                "t": ab.t_s,
+                **{
+                    name: {k: np.where(np.isfinite(v), v, np.nan) for k, v in outs.items()}
+                    for name, outs in ab.samples.items()
+                },
+            }
+        return msg
+
+    def _take_pushed(self) -> None:
+        while True:
+            try:
+                ab = self.sub.queue.get_nowait()
+            except asyncio.QueueEmpty:
+                break
+            if ab.seq in self.inflight and ab.seq not in self.ready:
+                self.ready[ab.seq] = self._message(ab)
+
+    async def _read_back(self) -> None:
+        """Results of in-flight batches already applied but not pushed here (applied by another
+        process, or pushed while the results queue was full)."""
+        missing = [seq for seq in self.inflight if seq not in self.ready]
+        if not missing:
+            return
+
+        def _do() -> list[dict[str, Any]]:
+            with self.db.read() as s:
+                applied = s.scalar(select_applied(self.actuator_pk)) or 0
+                seqs = [q for q in missing if q <= applied]
+                return queries.applied_results(s, self.actuator_pk, seqs)
+
+        for r in await run_in_threadpool(_do):
+            r = {"type": "result", "client_seq": client_seq_of(r.pop("batch_id")), **r}
+            self.ready[r["seq"]] = r
+
+    async def push_results(self) -> None:
+        poll = self.settings.ws_result_poll_s
+        while True:
+            if not self.inflight:
+                self.inflight_added.clear()
+                await self.inflight_added.wait()
+                continue
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self.sub.wakeup.wait(), poll)
+            self.sub.wakeup.clear()
+            self._take_pushed()
+            head = next(iter(self.inflight))
+            if head not in self.ready:
+                if self.sub.overflowed:
+                    self.sub.overflowed = False  # pushes were lost: read them back
+                await self._read_back()
+            while self.inflight:
+                head = next(iter(self.inflight))
+                msg = self.ready.pop(head, None)
+                if msg is None:
+                    break
+                self.inflight.pop(head)
+                await _send(self.ws, self.lock, msg)
+                self.window_free.set()
+
+    # ------------------------------------------------------------------ frames
+    def _log(self, data: str | bytes) -> tuple[int, telemetry.Ack]:
+        client_seq, parsed = parse_frame(data, self.channels, self.settings.max_batch_samples)
+        with self.db.write() as s:
+            act = s.get(Actuator, self.actuator_pk, with_for_update=not self.db.is_sqlite)
+            if act is None:
+                raise StaleBatch("the actuator was deleted")
+            last = act.last_client_seq or 0
+            if client_seq <= last and telemetry.find_batch(s, act.id, parsed.batch_id) is None:
+                raise StaleBatch(
+                    f"client_seq {client_seq} is not after the last logged frame ({last}); "
+                    "resume after the last_client_seq the server announced"
+                )
+            return client_seq, telemetry.append(s, act, parsed)
+
+    async def read_frames(self) -> None:
+        window = self.settings.ws_max_inflight
+        told = False
+        while True:
+            while len(self.inflight) >= window:
+                # Back-pressure: stop reading (TCP pushes back on the sender) until results free
+                # the window; say so once per stall.
+                if not told:
+                    await _send(self.ws, self.lock, {"type": "slow_down", "inflight": len(self.inflight)})
+                    told = True
+                self.window_free.clear()
+                if len(self.inflight) < window:
+                    break
+                await self.window_free.wait()
+            told = False
+            msg = await self.ws.receive()
+            if msg["type"] == "websocket.disconnect":
+                return
+            data = msg.get("text") if msg.get("text") is not None else msg.get("bytes")
+            if data is None:
+                continue
+            try:
+                client_seq, ack = await run_in_threadpool(self._log, data)
+            except UnsupportedFrame as exc:
+                WS_FRAMES.labels("unsupported").inc()
+                await _refuse(self.ws, CLOSE_UNSUPPORTED, exc.name, exc.detail)
+                return
+            except InvalidBatch as exc:
+                WS_FRAMES.labels("invalid").inc()
+                await _refuse(self.ws, CLOSE_INVALID, exc.name, exc.detail)
+                return
+            except (StaleBatch, IdempotencyConflict) as exc:
+                WS_FRAMES.labels("refused").inc()
+                await _refuse(self.ws, CLOSE_POLICY, exc.name, exc.detail)
+                return
+            if ack.replayed:
+                WS_FRAMES.labels("duplicate").inc()
+                await _send(self.ws, self.lock, {"type": "duplicate", "client_seq": client_seq, "seq": ack.seq})
+                continue
+            WS_FRAMES.labels("logged").inc()
+            self.inflight[ack.seq] = client_seq
+            self.inflight_added.set()
+            self.processor.notify(self.actuator_pk)
+            await _send(
+                self.ws,
+                self.lock,
+                {
+                    "type": "logged",
+                    "client_seq": client_seq,
+                    "seq": ack.seq,
+                    "n_samples": ack.n_samples,
+                    "t_first_s": ack.t_first_s,
+                    "t_last_s": ack.t_last_s,
+                },
+            )
+
+
+def select_applied(actuator_pk: int) -> Any:
+    return select(Stream.last_applied_seq).where(Stream.actuator_pk == actuator_pk)
+
+
+def _stream_start(db: Database, principal: Principal, tail: str, actuator_id: str) -> dict[str, Any]:
+    with db.read() as s:
+        act = fleet.get_actuator(s, principal.operator_id, tail, actuator_id)
+        applied = s.scalar(select_applied(act.id)) or 0
+        pending = list(
+            s.execute(
+                select(TelemetryBatch.seq, TelemetryBatch.batch_id)
+                .where(TelemetryBatch.actuator_pk == act.id, TelemetryBatch.seq > applied)
+                .order_by(TelemetryBatch.seq)
+            )
+        )
+        last_applied_frame = s.scalar(
+            select(TelemetryBatch.batch_id)
+            .where(
+                TelemetryBatch.actuator_pk == act.id,
+                TelemetryBatch.seq <= applied,
+                TelemetryBatch.batch_id.like(f"{FRAME_ID_PREFIX}%"),
+            )
+            .order_by(TelemetryBatch.seq.desc())
+            .limit(1)
+        )
+        return {
+            "last_applied_client_seq": client_seq_of(last_applied_frame) if last_applied_frame else None,
+            "actuator_pk": act.id,
+            "channels": list(act.channels),
+            "last_client_seq": act.last_client_seq,
+            "last_logged_seq": act.last_logged_seq,
+            "last_applied_seq": applied,
+            "pending": [(seq, client_seq_of(bid)) for seq, bid in pending],
+        }
+
+
+@router.websocket("/aircraft/{tail}/actuators/{actuator_id}/stream")
+async def stream(ws: WebSocket, tail: str, actuator_id: str) -> None:
+    """Live ingest: frames in, ``logged`` and ``result`` messages out (docs/api.md)."""
+    db: Database = ws.app.state.db
+    settings: Settings = ws.app.state.settings
+    processor: Processor = ws.app.state.processor
+    hub: Hub = processor.hub
+    await ws.accept()
+    principal = await _authenticate(ws, db, settings, "ingest")
+    if principal is None:
+        return
+    try:
+        start = await run_in_threadpool(_stream_start, db, principal, tail, actuator_id)
+    except DomainError as exc:
+        await _refuse(ws, CLOSE_POLICY, exc.name, exc.detail)
+        return
+    pk = start["actuator_pk"]
+    sub = hub.subscribe_stream(pk, maxsize=4 * settings.ws_max_inflight)
+    conn = _StreamConn(
+        ws=ws,
+        db=db,
+        settings=settings,
+        processor=processor,
+        actuator_pk=pk,
+        channels=start["channels"],
+        with_samples=ws.query_params.get("samples", "false").lower() in ("1", "true", "yes"),
+        sub=sub,
+    )
+    # Frames logged before a dropped connection and not applied yet: their results come here.
+    for seq, client_seq in start["pending"]:
+        if client_seq is not None:
+            conn.inflight[seq] = client_seq
+    WS_CONNECTIONS.labels("stream").inc()
+    pusher = asyncio.create_task(conn.push_results())
+    try:
+        await _send(
+            ws,
+            conn.lock,
+            {
+                "type": "ready",
+                "tail": tail,
+                "actuator_id": actuator_id,
+                "channels": start["channels"],
+                "last_client_seq": start["last_client_seq"],
+                "last_applied_client_seq": start["last_applied_client_seq"],
+                "last_logged_seq": start["last_logged_seq"],
+                "last_applied_seq": start["last_applied_seq"],
+                "max_inflight": settings.ws_max_inflight,
+            },
+        )
+        if conn.inflight:
+            conn.inflight_added.set()
+            processor.notify(pk)
+        reader = asyncio.create_task(conn.read_frames())
+        done, _ = await asyncio.wait({reader, pusher}, return_when=asyncio.FIRST_COMPLETED)
+        for task in done:
+            if task.exception() is not None and not isinstance(task.exception(), WebSocketDisconnect):
+                log.error("stream connection failed", exc_info=task.exception())
+        reader.cancel()
+    except WebSocketDisconnect:
+        pass
+    finally:
+        pusher.cancel()
+        hub.unsubscribe(sub)
+        WS_CONNECTIONS.labels("stream").dec()
+        if ws.application_state == WebSocketState.CONNECTED:
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(ws.close(), settings.ws_close_timeout_s)
+
+
+# ----------------------------------------------------------------------------- fleet events
+@router.websocket("/fleet/events")
+async def fleet_events(ws: WebSocket) -> None:
+    """Fleet events of the key's operator: status changes, fault detections and clearances,
+    RUL and deterioration thresholds crossed (and, on request, every applied batch)."""
+    db: Database = ws.app.state.db
+    settings: Settings = ws.app.state.settings
+    hub: Hub = ws.app.state.processor.hub
+    await ws.accept()
+    principal = await _authenticate(ws, db, settings, "read")
+    if principal is None:
+        return
+    tails = [t for v in ws.query_params.getlist("tail") for t in v.split(",") if t]
+    raw_types = ws.query_params.get("types")
+    types = [t for t in raw_types.split(",") if t] if raw_types else sorted(DEFAULT_FLEET_TYPES)
+    bad = sorted(set(types) - ALL_FLEET_TYPES)
+    if bad:
+        await _refuse(
+            ws, CLOSE_POLICY, "InvalidConfig", f"unknown event types {bad}; known: {sorted(ALL_FLEET_TYPES)}"
+        )
+        return
+    sub = hub.subscribe_fleet(principal.operator_id, tails or None, types, settings.ws_subscriber_queue)
+    WS_CONNECTIONS.labels("fleet").inc()
+
+    async def sender() -> None:
+        await ws.send_text(_dumps({"type": "ready", "tails": tails or None, "types": sorted(types)}))
+        while True:
+            ev = await sub.queue.get()
+            await ws.send_text(_dumps(public(ev)))
+
+    async def watch_overflow() -> None:
+        while not sub.overflowed:
+            sub.wakeup.clear()
+            await sub.wakeup.wait()
+
+    async def watch_peer() -> None:
+        while (await ws.receive())["type"] != "websocket.disconnect":
+            pass  # subscribers have nothing to say; anything they send is ignored
+
+    tasks = [asyncio.create_task(c()) for c in (sender, watch_overflow, watch_peer)]
+    try:
+        await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        for t in tasks:
+            t.cancel()
+        hub.unsubscribe(sub)
+        WS_CONNECTIONS.labels("fleet").dec()
+    if sub.overflowed:
+        WS_DROPPED.inc()
+        # The close frame waits behind whatever the slow peer has not read yet; give up after
+        # ws_close_timeout_s and let the server drop the socket.
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(
+                ws.close(code=CLOSE_TRY_LATER, reason="subscriber too slow: event queue full"),
+                settings.ws_close_timeout_s,
+            )
+    elif ws.application_state == WebSocketState.CONNECTED:
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(ws.close(), settings.ws_close_timeout_s)

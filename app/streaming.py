@@ -1,0 +1,297 @@
+"""Streaming client: send frames over WebSocket, with results pushed back and resume.
+
+    async with FrameStreamer(url, key, "N101FH", "ema-left") as fs:
+        for t, chans in blocks:
+            await fs.send(chans, t_s=t)
+        results = await fs.drain()
+
+Every frame gets the next client sequence number and stays in memory until the server says it is
+logged (durable). When the connection drops, :meth:`FrameStreamer.send` and
+:meth:`FrameStreamer.drain` reconnect (with backoff), read the server's ``last_client_seq`` and
+send again only the frames after it, so nothing is lost and nothing is logged twice. A frame the
+server refuses (invalid samples, out of order) raises :class:`StreamRefused`; it is not retried.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections import OrderedDict
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import orjson
+import pyarrow as pa
+from numpy.typing import ArrayLike
+from websockets.asyncio.client import ClientConnection, connect
+from websockets.exceptions import ConnectionClosed, InvalidStatus
+
+from app.client import _as_float_columns, _time_params
+
+# Close codes after which sending the same frame again cannot succeed.
+REFUSAL_CODES = frozenset({1003, 1007, 1008, 1009})
+
+
+class StreamRefused(Exception):
+    """The server refused a frame or the connection (error message and close code)."""
+
+    def __init__(self, code: int | None, error: str, detail: str) -> None:
+        super().__init__(f"{error}: {detail} (close code {code})")
+        self.code, self.error, self.detail = code, error, detail
+
+
+def encode_frame(
+    client_seq: int,
+    channels: Mapping[str, ArrayLike],
+    *,
+    t_s: ArrayLike | None = None,
+    t0: float | None = None,
+    sample_rate_hz: float | None = None,
+    binary: bool = False,
+) -> str | bytes:
+    """One frame: JSON text, or an Arrow IPC stream with ``client_seq`` in the schema metadata."""
+    t_arr, columns = _as_float_columns(channels, t_s)
+    time_params = _time_params(t_arr, t0, sample_rate_hz)
+    if not binary:
+        doc: dict[str, Any] = {"type": "samples", "client_seq": client_seq}
+        if t_arr is not None:
+            doc["t"] = t_arr
+        doc.update(time_params)
+        doc["channels"] = columns
+        return orjson.dumps(doc, option=orjson.OPT_SERIALIZE_NUMPY).decode()
+    names = (["t"] if t_arr is not None else []) + list(columns)
+    arrays = ([t_arr] if t_arr is not None else []) + list(columns.values())
+    meta = {"client_seq": str(client_seq), **{k: repr(v) for k, v in time_params.items()}}
+    rb = pa.record_batch([pa.array(a, type=pa.float64()) for a in arrays], names=names)
+    rb = rb.replace_schema_metadata(meta)
+    sink = pa.BufferOutputStream()
+    with pa.ipc.new_stream(sink, rb.schema) as writer:
+        writer.write_batch(rb)
+    return sink.getvalue().to_pybytes()
+
+
+def ws_url(base_url: str, path: str) -> str:
+    if base_url.startswith("https://"):
+        return "wss://" + base_url[len("https://") :].rstrip("/") + path
+    if base_url.startswith("http://"):
+        return "ws://" + base_url[len("http://") :].rstrip("/") + path
+    return base_url.rstrip("/") + path
+
+
+@dataclass
+class StreamStats:
+    connects: int = 0
+    frames_sent: int = 0
+    duplicates: int = 0
+    slow_downs: int = 0
+    results: list[dict[str, Any]] = field(default_factory=list)
+
+
+class FrameStreamer:
+    """Streams frames into one actuator and collects the results pushed back."""
+
+    def __init__(
+        self,
+        base_url: str,
+        api_key: str,
+        tail: str,
+        actuator_id: str,
+        *,
+        binary: bool = False,
+        samples: bool = False,
+        auth_message: bool = False,
+        reconnect_delays_s: Sequence[float] = (0.1, 0.25, 0.5, 1.0, 2.0, 5.0),
+        max_reconnects: int = 20,
+        open_timeout_s: float = 10.0,
+    ) -> None:
+        query = "?samples=true" if samples else ""
+        self.url = ws_url(base_url, f"/v1/aircraft/{tail}/actuators/{actuator_id}/stream{query}")
+        self.api_key = api_key
+        self.binary = binary
+        self.auth_message = auth_message
+        self.delays = tuple(reconnect_delays_s)
+        self.max_reconnects = max_reconnects
+        self.open_timeout_s = open_timeout_s
+        self.stats = StreamStats()
+        self.ready: dict[str, Any] = {}
+        self._ws: ClientConnection | None = None
+        self._unlogged: OrderedDict[int, str | bytes] = OrderedDict()  # client_seq -> frame
+        self._awaiting: set[int] = set()  # logged, result not seen
+        self._next_seq = 1
+        self._reader: asyncio.Task[None] | None = None
+        self._changed = asyncio.Event()
+        self._failure: BaseException | None = None
+
+    # ------------------------------------------------------------------ connection
+    async def __aenter__(self) -> FrameStreamer:
+        await self.open()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    async def open(self) -> dict[str, Any]:
+        """Connect (retrying with backoff) and resend what the server has not logged."""
+        attempt = 0
+        while True:
+            try:
+                return await self._connect()
+            except StreamRefused:
+                raise
+            except (OSError, ConnectionClosed, InvalidStatus, TimeoutError) as exc:
+                if attempt >= self.max_reconnects:
+                    raise ConnectionError(f"could not connect to {self.url}: {exc}") from exc
+                await asyncio.sleep(self.delays[min(attempt, len(self.delays) - 1)])
+                attempt += 1
+
+    async def _connect(self) -> dict[str, Any]:
+        headers = None if self.auth_message else {"Authorization": f"Bearer {self.api_key}"}
+        ws = await connect(
+            self.url, additional_headers=headers, open_timeout=self.open_timeout_s, max_size=None
+        )
+        try:
+            if self.auth_message:
+                await ws.send(orjson.dumps({"type": "auth", "key": self.api_key}).decode())
+            ready = self._decode(await asyncio.wait_for(ws.recv(), self.open_timeout_s))
+            if ready.get("type") == "error":
+                raise StreamRefused(None, ready.get("error", "Error"), ready.get("detail", ""))
+        except BaseException:
+            await ws.close()
+            raise
+        self._ws = ws
+        self.ready = ready
+        self.stats.connects += 1
+        last_logged = ready.get("last_client_seq") or 0
+        last_applied = ready.get("last_applied_client_seq") or 0
+        self._next_seq = max(self._next_seq, last_logged + 1)
+        for seq in [s for s in self._unlogged if s <= last_logged]:
+            del self._unlogged[seq]  # durable already
+            self._awaiting.add(seq)
+        # Results of frames applied while disconnected are in the store, not pushed again.
+        self._awaiting = {s for s in self._awaiting if s > last_applied}
+        self._failure = None
+        self._reader = asyncio.create_task(self._read(ws))
+        for frame in list(self._unlogged.values()):
+            await ws.send(frame)
+        return ready
+
+    async def close(self) -> None:
+        if self._reader is not None:
+            self._reader.cancel()
+        if self._ws is not None:
+            await self._ws.close()
+            self._ws = None
+
+    async def drop(self) -> None:
+        """Cut the connection abruptly (tests of resume)."""
+        if self._ws is not None:
+            self._ws.transport.abort()
+
+    # ------------------------------------------------------------------ messages
+    @staticmethod
+    def _decode(raw: str | bytes) -> dict[str, Any]:
+        doc = orjson.loads(raw)
+        if not isinstance(doc, dict):
+            raise ValueError(f"unexpected message {doc!r}")
+        return doc
+
+    async def _read(self, ws: ClientConnection) -> None:
+        error: dict[str, Any] | None = None
+        try:
+            async for raw in ws:
+                msg = self._decode(raw)
+                kind = msg.get("type")
+                if kind == "logged":
+                    self._unlogged.pop(msg["client_seq"], None)
+                    self._awaiting.add(msg["client_seq"])
+                elif kind == "duplicate":
+                    self.stats.duplicates += 1
+                    self._unlogged.pop(msg["client_seq"], None)
+                elif kind == "result":
+                    if msg.get("client_seq") is not None:
+                        self._awaiting.discard(msg["client_seq"])
+                    self.stats.results.append(msg)
+                elif kind == "slow_down":
+                    self.stats.slow_downs += 1
+                elif kind == "error":
+                    error = msg
+                self._changed.set()
+        except ConnectionClosed:
+            pass
+        code = ws.close_code
+        if error is not None or code in REFUSAL_CODES:
+            err = error or {}
+            self._failure = StreamRefused(code, err.get("error", "Closed"), err.get("detail", ws.close_reason or ""))
+        else:
+            self._failure = ConnectionError(f"connection closed ({code})")
+        self._changed.set()
+
+    async def _ensure_open(self) -> ClientConnection:
+        if isinstance(self._failure, StreamRefused):
+            raise self._failure
+        if self._ws is None or self._failure is not None:
+            if self._ws is not None:
+                with contextlib.suppress(Exception):
+                    await self._ws.close()
+                self._ws = None
+            await self.open()
+        assert self._ws is not None
+        return self._ws
+
+    # ------------------------------------------------------------------ sending
+    async def send(
+        self,
+        channels: Mapping[str, ArrayLike],
+        *,
+        t_s: ArrayLike | None = None,
+        t0: float | None = None,
+        sample_rate_hz: float | None = None,
+    ) -> int:
+        """Send the next frame; returns its client sequence number. Blocks while the server
+        pushes back (its in-flight window is full)."""
+        seq = self._next_seq
+        frame = encode_frame(seq, channels, t_s=t_s, t0=t0, sample_rate_hz=sample_rate_hz, binary=self.binary)
+        self._next_seq += 1
+        self._unlogged[seq] = frame
+        self.stats.frames_sent += 1
+        while True:
+            ws = await self._ensure_open()
+            try:
+                await ws.send(frame)
+                return seq
+            except ConnectionClosed:
+                await asyncio.sleep(0)  # the reader records why; _ensure_open reconnects
+                if self._failure is None:
+                    self._failure = ConnectionError("connection closed while sending")
+
+    async def drain(self, timeout_s: float = 60.0) -> list[dict[str, Any]]:
+        """Wait until every frame sent is logged and its result pushed (reconnecting as
+        needed); returns all results received so far, in order."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout_s
+        while self._unlogged or self._awaiting:
+            await self._ensure_open()
+            left = deadline - loop.time()
+            if left <= 0:
+                raise TimeoutError(
+                    f"{len(self._unlogged)} frames not logged and {len(self._awaiting)} results "
+                    f"missing after {timeout_s} s"
+                )
+            self._changed.clear()
+            if not (self._unlogged or self._awaiting) or self._failure is not None:
+                continue
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._changed.wait(), left)
+        return self.stats.results
+
+
+def frames_of(
+    t_s: np.ndarray, channels: Mapping[str, np.ndarray], frame_samples: int
+) -> list[tuple[np.ndarray, dict[str, np.ndarray]]]:
+    """Cut a series into frames of ``frame_samples`` samples."""
+    out = []
+    for i in range(0, len(t_s), frame_samples):
+        out.append((t_s[i : i + frame_samples], {k: v[i : i + frame_samples] for k, v in channels.items()}))
+    return out
