@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import socket
 import sys
 import threading
 from pathlib import Path
@@ -57,13 +58,27 @@ def cmd_serve(args: argparse.Namespace) -> int:
         threading.Thread(target=_demo_feeder, args=(url, key, stop), daemon=True).start()
     else:
         print(f"fleethealth serving on {url} (API docs at {url}/docs)", flush=True)
+    config = uvicorn.Config(
+        create_app(s), host=host, port=port, log_level=args.log_level, ws_max_size=s.ws_max_frame_bytes
+    )
     try:
-        uvicorn.run(
-            create_app(s), host=host, port=port, log_level=args.log_level, ws_max_size=s.ws_max_frame_bytes
-        )
+        uvicorn.Server(config).run(sockets=[_listen(host, port, s.socket_send_buffer_bytes)])
     finally:
         stop.set()
     return 0
+
+
+def _listen(host: str, port: int, send_buffer_bytes: int | None) -> socket.socket:
+    """The listening socket. Accepted connections inherit its send buffer size, so a cap here
+    bounds the kernel memory a slow reader can hold (and disables send-buffer autotuning)."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    if send_buffer_bytes is not None:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, send_buffer_bytes)
+    sock.bind((host, port))
+    sock.set_inheritable(True)
+    return sock
 
 
 def _demo_feeder(url: str, key: str, stop: threading.Event) -> None:

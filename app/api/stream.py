@@ -206,61 +206,80 @@ class _StreamConn:
                 )
             return client_seq, telemetry.append(s, act, parsed)
 
-    async def read_frames(self) -> None:
+    async def _window_slot(self, nxt: asyncio.Future[Any]) -> bool:
+        """Wait until fewer than ``ws_max_inflight`` frames await their results. Meanwhile the
+        next message may be read ahead (one frame at most, so TCP still pushes back on the
+        sender) to notice a peer that leaves. False when the peer left."""
         window = self.settings.ws_max_inflight
         told = False
-        while True:
-            while len(self.inflight) >= window:
-                # Back-pressure: stop reading (TCP pushes back on the sender) until results free
-                # the window; say so once per stall.
-                if not told:
-                    await _send(self.ws, self.lock, {"type": "slow_down", "inflight": len(self.inflight)})
-                    told = True
-                self.window_free.clear()
-                if len(self.inflight) < window:
-                    break
-                await self.window_free.wait()
-            told = False
-            msg = await self.ws.receive()
-            if msg["type"] == "websocket.disconnect":
-                return
-            data = msg.get("text") if msg.get("text") is not None else msg.get("bytes")
-            if data is None:
-                continue
-            try:
-                client_seq, ack = await run_in_threadpool(self._log, data)
-            except UnsupportedFrame as exc:
-                WS_FRAMES.labels("unsupported").inc()
-                await _refuse(self.ws, CLOSE_UNSUPPORTED, exc.name, exc.detail)
-                return
-            except InvalidBatch as exc:
-                WS_FRAMES.labels("invalid").inc()
-                await _refuse(self.ws, CLOSE_INVALID, exc.name, exc.detail)
-                return
-            except (StaleBatch, IdempotencyConflict) as exc:
-                WS_FRAMES.labels("refused").inc()
-                await _refuse(self.ws, CLOSE_POLICY, exc.name, exc.detail)
-                return
-            if ack.replayed:
-                WS_FRAMES.labels("duplicate").inc()
-                await _send(self.ws, self.lock, {"type": "duplicate", "client_seq": client_seq, "seq": ack.seq})
-                continue
-            WS_FRAMES.labels("logged").inc()
-            self.inflight[ack.seq] = client_seq
-            self.inflight_added.set()
-            self.processor.notify(self.actuator_pk)
-            await _send(
-                self.ws,
-                self.lock,
-                {
-                    "type": "logged",
-                    "client_seq": client_seq,
-                    "seq": ack.seq,
-                    "n_samples": ack.n_samples,
-                    "t_first_s": ack.t_first_s,
-                    "t_last_s": ack.t_last_s,
-                },
-            )
+        while len(self.inflight) >= window:
+            if not told:
+                await _send(self.ws, self.lock, {"type": "slow_down", "inflight": len(self.inflight)})
+                told = True
+            self.window_free.clear()
+            if len(self.inflight) < window:
+                break
+            free = asyncio.ensure_future(self.window_free.wait())
+            watch = {free} if nxt.done() else {free, nxt}
+            await asyncio.wait(watch, return_when=asyncio.FIRST_COMPLETED)
+            free.cancel()
+            if nxt.done() and nxt.result()["type"] == "websocket.disconnect":
+                return False
+        return True
+
+    async def read_frames(self) -> None:
+        nxt: asyncio.Future[Any] = asyncio.ensure_future(self.ws.receive())
+        try:
+            while True:
+                msg = await nxt
+                if msg["type"] == "websocket.disconnect":
+                    return
+                nxt = asyncio.ensure_future(self.ws.receive())
+                if not await self._window_slot(nxt):
+                    return
+                data = msg.get("text") if msg.get("text") is not None else msg.get("bytes")
+                if data is not None and not await self._take_frame(data):
+                    return
+        finally:
+            nxt.cancel()
+
+    async def _take_frame(self, data: str | bytes) -> bool:
+        """Log one frame and acknowledge it; False when it was refused (connection closed)."""
+        try:
+            client_seq, ack = await run_in_threadpool(self._log, data)
+        except UnsupportedFrame as exc:
+            WS_FRAMES.labels("unsupported").inc()
+            await _refuse(self.ws, CLOSE_UNSUPPORTED, exc.name, exc.detail)
+            return False
+        except InvalidBatch as exc:
+            WS_FRAMES.labels("invalid").inc()
+            await _refuse(self.ws, CLOSE_INVALID, exc.name, exc.detail)
+            return False
+        except (StaleBatch, IdempotencyConflict) as exc:
+            WS_FRAMES.labels("refused").inc()
+            await _refuse(self.ws, CLOSE_POLICY, exc.name, exc.detail)
+            return False
+        if ack.replayed:
+            WS_FRAMES.labels("duplicate").inc()
+            await _send(self.ws, self.lock, {"type": "duplicate", "client_seq": client_seq, "seq": ack.seq})
+            return True
+        WS_FRAMES.labels("logged").inc()
+        self.inflight[ack.seq] = client_seq
+        self.inflight_added.set()
+        self.processor.notify(self.actuator_pk)
+        await _send(
+            self.ws,
+            self.lock,
+            {
+                "type": "logged",
+                "client_seq": client_seq,
+                "seq": ack.seq,
+                "n_samples": ack.n_samples,
+                "t_first_s": ack.t_first_s,
+                "t_last_s": ack.t_last_s,
+            },
+        )
+        return True
 
 
 def select_applied(actuator_pk: int) -> Any:
