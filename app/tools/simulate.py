@@ -29,6 +29,7 @@ import httpx
 import numpy as np
 
 from app.client import BATCH_FORMATS, ApiError, FleetHealthClient
+from app.streaming import StreamRefused
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 ACTUATOR_KIND = "ema_voltage"
@@ -202,6 +203,47 @@ def wait_until_ready(
     return False
 
 
+TRANSPORTS = ("rest", "ws")
+
+
+class _WsSenders:
+    """One WebSocket stream per actuator, driven from the simulator's synchronous loop through an
+    event loop in a background thread."""
+
+    def __init__(self, base_url: str, api_key: str, binary: bool) -> None:
+        import asyncio
+
+        from app.streaming import FrameStreamer
+
+        self._asyncio = asyncio
+        self._make = lambda tail, act: FrameStreamer(base_url, api_key, tail, act, binary=binary)
+        self.loop = asyncio.new_event_loop()
+        self.thread = threading.Thread(target=self.loop.run_forever, name="simulate-ws", daemon=True)
+        self.thread.start()
+        self.streams: dict[tuple[str, str], Any] = {}
+
+    def _run(self, coro: Any, timeout_s: float = 120.0) -> Any:
+        return self._asyncio.run_coroutine_threadsafe(coro, self.loop).result(timeout_s)
+
+    def send(self, tail: str, actuator_id: str, t_s: np.ndarray, channels: dict[str, np.ndarray]) -> None:
+        key = (tail, actuator_id)
+        if key not in self.streams:
+            fs = self._make(tail, actuator_id)
+            self._run(fs.open())
+            self.streams[key] = fs
+        self._run(self.streams[key].send(channels, t_s=t_s))
+
+    def close(self) -> None:
+        for fs in self.streams.values():
+            try:
+                self._run(fs.drain(60.0))
+            finally:
+                self._run(fs.close())
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.thread.join(10)
+        self.loop.close()
+
+
 def run_simulation(
     base_url: str,
     api_key: str,
@@ -219,6 +261,7 @@ def run_simulation(
     ready_timeout_s: float = 60.0,
     stop_event: threading.Event | None = None,
     log: Log = print,
+    transport: str = "rest",
 ) -> SimulationSummary:
     """Register a demo fleet and stream simulated EMA telemetry to it.
 
@@ -239,12 +282,17 @@ def run_simulation(
         ready_timeout_s: how long to wait for the server's ``/readyz``.
         stop_event: set it to stop after the current batch.
         log: receives one line per notable event.
+        transport: ``"rest"`` posts batches; ``"ws"`` streams them as WebSocket frames (JSON
+            frames for ``fmt="json"``, Arrow frames otherwise), resuming after a dropped
+            connection.
 
     Returns:
         counts of what was sent.
     """
     if fmt not in BATCH_FORMATS:
         raise ValueError(f"unknown format {fmt!r}")
+    if transport not in TRANSPORTS:
+        raise ValueError(f"unknown transport {transport!r}; use one of {', '.join(TRANSPORTS)}")
     if sample_rate_hz <= 0 or batch_seconds <= 0:
         raise ValueError("sample_rate_hz and batch_seconds must be positive")
     if duration_s is None and stop_event is None:
@@ -290,6 +338,7 @@ def run_simulation(
             log(f"simulate: {tail}/{actuator_id} load {load_lbs:+.1f} lbs{wear}")
 
         fleet = _Fleet(streams, sample_rate_hz, simulate, _nominal_friction())
+        ws = _WsSenders(base_url, api_key, binary=fmt != "json") if transport == "ws" else None
 
         n_batches = None if duration_s is None else math.ceil(duration_s / batch_seconds)
         wall_start = time.monotonic()
@@ -312,10 +361,13 @@ def run_simulation(
                 # retries, and never reused after a restart (time only moves forward).
                 batch_id = f"sim-{int(round(t_s[0] * 1000.0))}"
                 try:
-                    client.post_batch(
-                        stream.tail, stream.actuator_id, batch_id, channels, t_s=t_s, fmt=fmt
-                    )
-                except (ApiError, httpx.TransportError) as exc:
+                    if ws is not None:
+                        ws.send(stream.tail, stream.actuator_id, t_s, channels)
+                    else:
+                        client.post_batch(
+                            stream.tail, stream.actuator_id, batch_id, channels, t_s=t_s, fmt=fmt
+                        )
+                except (ApiError, httpx.TransportError, ConnectionError, StreamRefused) as exc:
                     # Retries are spent: report, leave a gap in this stream, keep the others going.
                     summary.errors += 1
                     log(f"simulate: {stream.tail}/{stream.actuator_id} {batch_id}: {exc!r}")
@@ -329,6 +381,8 @@ def run_simulation(
                     f"simulate: {summary.stream_seconds:.0f} s streamed, "
                     f"{summary.batches_sent} batches, {summary.errors} errors"
                 )
+        if ws is not None:
+            ws.close()  # waits until every frame is logged and applied
     log(
         f"simulate: done, {summary.batches_sent} batches, {summary.samples_sent} samples, "
         f"{summary.errors} errors"
@@ -380,6 +434,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "(default 300 in real time, else --duration-s)",
     )
     parser.add_argument("--format", choices=BATCH_FORMATS, default="arrow", dest="fmt")
+    parser.add_argument(
+        "--transport",
+        choices=TRANSPORTS,
+        default="rest",
+        help="rest: POST batches; ws: stream WebSocket frames (Arrow, or JSON with --format json)",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
         "--tail-prefix", default="FH", help="tails are PREFIX-001, PREFIX-002, ... (default FH)"
@@ -407,6 +467,7 @@ def run(args: argparse.Namespace) -> int:
             tail_prefix=args.tail_prefix,
             degrade_over_s=args.degrade_over_s,
             stop_event=stop_event,
+            transport=args.transport,
         )
     except KeyboardInterrupt:
         stop_event.set()

@@ -327,7 +327,8 @@ def test_simulate_registers_fleet_and_degradation_shows_in_fakf_health(
     assert fleet["SIM-002"]["status"] in ("watch", "alert")
     assert len(fleet["SIM-002"]["actuators"]) == 2
 
-    # A second run continues each stream after its last sample instead of colliding with it.
+    # A second run, streaming over WebSocket, continues each stream after its last sample
+    # instead of colliding with it.
     again = run_simulation(
         server.url,
         server.api_key,
@@ -339,6 +340,7 @@ def test_simulate_registers_fleet_and_degradation_shows_in_fakf_health(
         seed=3,
         tail_prefix="SIM",
         log=lines.append,
+        transport="ws",
     )
     assert again.errors == 0, lines
     for (tail, actuator_id), t_before in t_last.items():
