@@ -1,0 +1,118 @@
+"""The in-process hub: fleet events derived from an apply, filtering, bounded queues; frame
+parsing."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+
+import numpy as np
+import pytest
+
+from app.errors import InvalidBatch
+from app.hub import Hub, StreamMeta, fleet_events, public
+from app.ingest import UnsupportedFrame, client_seq_of, frame_batch_id, parse_frame
+from app.processing import AppliedBatch, ApplyResult
+from app.streaming import encode_frame
+
+
+def _applied(seq: int, status: str, events: list[dict] | None = None) -> AppliedBatch:  # type: ignore[type-arg]
+    return AppliedBatch(
+        seq=seq,
+        batch_id=f"b{seq}",
+        t_first_s=float(seq),
+        t_last_s=seq + 0.5,
+        n_samples=10,
+        status=status,
+        estimators={
+            "est": {"status": status, "reasons": [f"r{seq}"] if status != "ok" else [], "last": {"x": 1.0},
+                    "health": [], "events": events or [], "rul": [], "diagnosis": None}
+        },
+    )
+
+
+def test_fleet_events_report_status_changes_and_fleet_kinds_only() -> None:
+    meta = StreamMeta(operator_id=7, tail="N1", actuator_id="a")
+    res = ApplyResult(
+        batches=3, samples=30, last_applied_seq=3, actuator_pk=1,
+        applied=[
+            _applied(1, "ok", [{"kind": "identified", "t_s": 1.0, "detail": {}}]),
+            _applied(2, "alert", [{"kind": "fault_detected", "t_s": 2.2, "detail": {"component": "rudder"}}]),
+            _applied(3, "alert"),
+        ],
+        status_before="ok", status_after="alert",
+    )
+    evs = fleet_events(meta, res)
+    kinds = [(e["type"], e["seq"]) for e in evs if e["type"] != "applied"]
+    assert kinds == [("fault_detected", 2), ("status_changed", 2)]  # "identified" is not a fleet event
+    change = next(e for e in evs if e["type"] == "status_changed")
+    assert (change["from"], change["to"], change["reasons"]) == ("ok", "alert", ["r2"])
+    assert [e["seq"] for e in evs if e["type"] == "applied"] == [1, 2, 3]
+    assert "_operator_id" not in public(change) and public(change)["tail"] == "N1"
+
+
+def test_hub_filters_by_operator_tail_and_type_and_drops_an_overflowing_subscriber() -> None:
+    hub = Hub()
+
+    async def run() -> tuple[list[dict], bool, list[dict], bool]:  # type: ignore[type-arg]
+        mine = hub.subscribe_fleet(7, ["N1"], ["status_changed"], maxsize=3)
+        small = hub.subscribe_fleet(7, None, ["applied"], maxsize=2)
+        ev = {"_operator_id": 7, "tail": "N1", "type": "status_changed"}
+        batch = [
+            ev,
+            {**ev, "tail": "N2"},  # other tail
+            {**ev, "_operator_id": 8},  # other operator
+            {**ev, "type": "applied"},
+            {**ev, "type": "applied"},
+            {**ev, "type": "applied"},  # third one overflows `small`
+        ]
+        # Published from another thread, as the processor does; publishing never blocks.
+        t = threading.Thread(target=hub.publish_fleet, args=(batch,))
+        t.start()
+        t.join()
+        await asyncio.sleep(0.05)
+        got_mine = [mine.queue.get_nowait() for _ in range(mine.queue.qsize())]
+        got_small = [small.queue.get_nowait() for _ in range(small.queue.qsize())]
+        hub.unsubscribe(mine)
+        hub.unsubscribe(small)
+        return got_mine, mine.overflowed, got_small, small.overflowed
+
+    got_mine, mine_over, got_small, small_over = asyncio.run(run())
+    assert got_mine == [{"_operator_id": 7, "tail": "N1", "type": "status_changed"}]
+    assert not mine_over
+    assert len(got_small) == 2 and small_over
+    assert not hub.has_fleet_subscribers()
+
+
+def test_frames_parse_in_both_encodings_to_the_same_batch() -> None:
+    t = np.arange(5) * 0.01 + 3.0
+    chans = {"current": np.array([1.0, np.nan, 2.0, 3.0, 4.0]), "voltage": np.arange(5.0)}
+    seq_j, bj = parse_frame(encode_frame(12, chans, t_s=t), ["current", "voltage"], 100)
+    seq_a, ba = parse_frame(encode_frame(12, chans, t_s=t, binary=True), ["current", "voltage"], 100)
+    seq_r, br = parse_frame(encode_frame(12, chans, t0=3.0, sample_rate_hz=100.0, binary=True),
+                            ["current", "voltage"], 100)
+    assert seq_j == seq_a == seq_r == 12
+    assert bj.batch_id == ba.batch_id == frame_batch_id(12) and client_seq_of(bj.batch_id) == 12
+    assert bj.content_hash() == ba.content_hash() == br.content_hash()
+
+
+@pytest.mark.parametrize(
+    ("frame", "error", "match"),
+    [
+        ('{"type": "hello"}', UnsupportedFrame, "unexpected message type"),
+        ('{"type": "samples", "client_seq": true, "t": [0], "channels": {"a": [1]}}', InvalidBatch, "client_seq"),
+        ('{"type": "samples", "client_seq": 1, "batch_id": "x", "t": [0], "channels": {"a": [1]}}', InvalidBatch,
+         "not batch_id"),
+        ('[1, 2]', InvalidBatch, "JSON object"),
+        (b"\x00\x01", InvalidBatch, "Arrow"),
+    ],
+)
+def test_bad_frames_are_refused_with_a_reason(frame: str | bytes, error: type, match: str) -> None:
+    with pytest.raises(error, match=match):
+        parse_frame(frame, ["a"], 100)
+
+
+def test_rest_batch_ids_cannot_take_the_frame_prefix(api) -> None:  # type: ignore[no-untyped-def]
+    api.setup_actuator()
+    r = api.send_json("N1", "ema1", "ws-1", np.arange(3.0), {"current": np.ones(3), "voltage": np.ones(3)})
+    assert r.status_code == 400 and "reserved" in r.json()["detail"]
