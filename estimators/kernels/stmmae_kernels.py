@@ -1,0 +1,874 @@
+"""Compiled per-sample loop of the strong-tracking multiple-model filter bank (``stmmae``).
+
+``estimators.stmmae`` builds the bank's matrices once per configuration (:class:`BankArrays`),
+packs the state into one flat float64 vector and calls :func:`bank_batch` once per batch; the
+loop over samples and filters runs here, compiled by numba.
+
+Bank layout: hypothesis 0 is the no-fault filter, hypothesis ``h >= 1`` the fault of surface
+``h - 1``. Every filter has ``na = n + 1`` states (the model's ``n`` plus the deflection of its
+surface; the no-fault filter's extra state is identically zero and never touched by the data).
+
+State vector (indices from :func:`state_layout`): a header (samples seen, covariance failures,
+time of the previous sample), per filter ``x`` (na), ``P`` (na x na, row-major, full: the
+one-sided strong-tracking form makes it non-symmetric), ``V`` (p x p innovation covariance
+estimate) and its "started" flag; the hypothesis probabilities; the last valid inputs; per fault
+hypothesis the decision fields (``D_*``); the health-window accumulators (``W_*``).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+VARIANT_IMPROVED = 0
+VARIANT_STRONG_TRACKING = 1
+VARIANT_EMMAE = 2
+LIKELIHOOD_EUCLIDEAN = 0
+LIKELIHOOD_GAUSSIAN = 1
+LOG_2PI = math.log(2.0 * math.pi)
+# floating-point contraction and reassociation (no assumption about NaN or infinity, which the
+# code tests for): lets LLVM fuse and vectorize the small dense loops
+FAST = {"contract", "reassoc", "arcp"}
+
+# scalar configuration vector
+CFG_VARIANT = 0
+CFG_LIKELIHOOD = 1
+CFG_RHO = 2  # forgetting factor of the innovation covariance estimate
+CFG_BETA = 3  # weakening factor
+CFG_FLOOR = 4  # probability floor
+CFG_DETECT_P = 5
+CFG_CLEAR_P = 6
+CFG_HOLD_S = 7
+CFG_CLEAR_HOLD_S = 8
+CFG_ONSET_P = 9
+CFG_WINDOW = 10  # health window length, samples
+CFG_SMOOTH_S = 11  # time constant of the smoothed deflection estimate
+CFG_MIN_ERR = 12  # smallest |deflection estimate - command| (rad) for a detection
+CFG_LIMIT = 13  # deflection estimates are clipped to +-CFG_LIMIT (rad) before smoothing
+CFG_KIND_WINDOW_S = 14  # span after detection over which the fault kind is judged
+CFG_LEN = 15
+
+# header of the state vector
+ST_N_SEEN = 0
+ST_COV_FAIL = 1
+ST_T_PREV = 2
+ST_HEADER = 3
+
+# decision fields of one fault hypothesis
+D_ACTIVE = 0
+D_ABOVE_T = 1  # start of the current run above the detection probability (NaN: none)
+D_ONSET_T = 2  # start of the current run above the onset probability (NaN: none)
+D_BELOW_T = 3  # start of the current run below the clearance probability while active
+D_DETECTED_T = 4
+D_SMOOTH = 5  # smoothed deflection estimate (rad)
+D_SMOOTH_SET = 6
+D_EP_SUM = 7  # sums of the smoothed deflection over the episode's samples above CFG_DETECT_P,
+D_EP_SUMSQ = 8  # from the start of the run that led to the detection until CFG_KIND_WINDOW_S
+D_EP_N = 9  # after the detection (then frozen: the fault kind is judged on that span)
+D_LEN = 10
+
+# health-window accumulators
+W_COUNT = 0
+W_T0 = 1
+W_SUM_NOMINAL = 2
+W_MAX_FAULT = 3
+W_MAX_FAULT_HYP = 4
+W_SUM_NIS = 5
+W_N_NIS = 6
+W_N_ACTIVE = 7
+W_COV_FAIL = 8
+W_LEN = 9
+
+# health-window rows
+WIN_T0 = 0
+WIN_T1 = 1
+WIN_N = 2
+WIN_NOMINAL_MEAN = 3
+WIN_MAX_FAULT = 4
+WIN_MAX_FAULT_HYP = 5
+WIN_NIS_MEAN = 6  # mean of NIS / (number of measurements used), no-fault filter
+WIN_ACTIVE_FRACTION = 7
+WIN_COV_FAIL = 8
+WIN_LEN = 9
+
+# event rows
+EV_T = 0
+EV_KIND = 1  # EV_DETECTED or EV_CLEARED
+EV_HYP = 2
+EV_ONSET_T = 3
+EV_DETECTED_T = 4
+EV_CLEARED_T = 5
+EV_SWING = 6  # twice the standard deviation of the smoothed deflection over the episode (rad)
+EV_MEAN = 7  # mean of the smoothed deflection over the episode (rad)
+EV_LEN = 8
+EV_DETECTED = 1
+EV_CLEARED = 2
+
+
+class BankArrays(NamedTuple):
+    """Matrices of the bank, built once per configuration (all float64, C-contiguous).
+
+    Attributes:
+        phi: (nh, na, na) transition matrices.
+        gin: (nh, na, m) input matrices (the filter's own surface column zeroed).
+        offset: (nh, na) constant term ``-G_i u*_i`` of the fault filters.
+        q: (nh, na, na) process noise covariances.
+        h: (p, na) measurement matrix.
+        r: (p, p) measurement noise covariance.
+        hth_cols, hth_vals, hth_nnz: the non-zero entries of each row of ``H^T W H``,
+            ``W = diag(1 / R_jj)`` (traces in sensor-noise units).
+        hqh_diag: (nh, p) diagonal of ``H Q H^T``.
+        h_cols, h_vals, h_nnz: the non-zero entries of each row of ``h`` (column indices
+            (p, k) int64, values (p, k), counts (p,) int64), so that products with H cost
+            what its non-zeros cost (one per row for a selection matrix).
+        phi_cols, phi_vals, phi_nnz: the same for the rows of each ``phi`` ((nh, na, k),
+            (nh, na, k), (nh, na)): the longitudinal and lateral blocks of a model linearized
+            at level flight do not couple.
+        phi_t: (nh, na, na) the transposed transition matrices.
+        fading_weights: (nh, na) prior-knowledge weights ``a_j`` of the fading factors.
+        euclid_weights: (p,) ``1 / R_jj``, the units of the Euclidean-norm likelihood.
+        x_trim: (n,) trim state; u_trim: (m,) trim inputs; y_trim: (p,) ``H x*``.
+        x0: (nh, na) initial states; p0: (nh, na, na) initial covariances.
+    """
+
+    phi: FloatArray
+    gin: FloatArray
+    offset: FloatArray
+    q: FloatArray
+    h: FloatArray
+    r: FloatArray
+    hth_cols: IntArray
+    hth_vals: FloatArray
+    hth_nnz: IntArray
+    hqh_diag: FloatArray
+    h_cols: IntArray
+    h_vals: FloatArray
+    h_nnz: IntArray
+    phi_cols: IntArray
+    phi_vals: FloatArray
+    phi_nnz: IntArray
+    phi_t: FloatArray
+    fading_weights: FloatArray
+    euclid_weights: FloatArray
+    x_trim: FloatArray
+    u_trim: FloatArray
+    y_trim: FloatArray
+    x0: FloatArray
+    p0: FloatArray
+
+
+class Layout(NamedTuple):
+    """Offsets of the state vector for a bank of ``nh`` filters of ``na`` states."""
+
+    nh: int
+    na: int
+    p: int
+    m: int
+    filt: int  # start of the first filter block
+    filt_len: int  # length of one filter block: na + na*na + p*p + 1
+    probs: int
+    u_last: int
+    decisions: int
+    window: int
+    length: int
+
+
+def state_layout(nh: int, na: int, p: int, m: int) -> Layout:
+    """The state-vector layout of a bank."""
+    filt_len = na + na * na + p * p + 1
+    filt = ST_HEADER
+    probs = filt + nh * filt_len
+    u_last = probs + nh
+    decisions = u_last + m
+    window = decisions + (nh - 1) * D_LEN
+    return Layout(nh, na, p, m, filt, filt_len, probs, u_last, decisions, window, window + W_LEN)
+
+
+# ----------------------------------------------------------------------------- linear algebra
+@njit(cache=True, error_model="numpy")
+def lu_nopivot(a: FloatArray, k: int) -> bool:
+    """In-place Doolittle LU of the leading ``k x k`` block (unit lower L below the diagonal,
+    U on and above). Returns False when a pivot is not positive: for a symmetric matrix this is
+    exactly "not positive definite"."""
+    for j in range(k):
+        for i in range(j + 1):
+            s = a[i, j]
+            for t in range(i):
+                s -= a[i, t] * a[t, j]
+            a[i, j] = s
+        piv = a[j, j]
+        if not piv > 0.0:
+            return False
+        for i in range(j + 1, k):
+            s = a[i, j]
+            for t in range(j):
+                s -= a[i, t] * a[t, j]
+            a[i, j] = s / piv
+    return True
+
+
+@njit(cache=True, error_model="numpy")
+def lu_solve(lu: FloatArray, k: int, b: FloatArray, out: FloatArray) -> None:
+    """Solve ``S z = b`` from :func:`lu_nopivot` factors (first ``k`` entries)."""
+    for i in range(k):
+        s = b[i]
+        for t in range(i):
+            s -= lu[i, t] * out[t]
+        out[i] = s
+    for i in range(k - 1, -1, -1):
+        s = out[i]
+        for t in range(i + 1, k):
+            s -= lu[i, t] * out[t]
+        out[i] = s / lu[i, i]
+
+
+@njit(cache=True, error_model="numpy")
+def gaussian_loglik(gam: FloatArray, s: FloatArray, k: int, work: FloatArray) -> float:
+    """Log of the multivariate Gaussian density of innovation ``gam`` with covariance ``s``
+    (leading ``k`` entries; ``s`` is overwritten by its LU factors); -inf when ``s`` is not
+    positive definite."""
+    if not lu_nopivot(s, k):
+        return -np.inf
+    lu_solve(s, k, gam, work)
+    quad = 0.0
+    logdet = 0.0
+    for i in range(k):
+        quad += gam[i] * work[i]
+        logdet += math.log(s[i, i])
+    return -0.5 * (quad + logdet + k * LOG_2PI)
+
+
+@njit(cache=True, error_model="numpy")
+def euclidean_loglik(gam: FloatArray, s_diag: FloatArray, w: FloatArray, k: int) -> float:
+    """Log-likelihood from the Euclidean norm of the innovation in units of the sensor noise:
+    ``e^2 = sum_j w_j gam_j^2``, ``sigma^2 = sum_j w_j S_jj`` (its expectation), and the 1-D
+    Gaussian density ``N(e; 0, sigma^2)``."""
+    e2 = 0.0
+    s2 = 0.0
+    for i in range(k):
+        e2 += w[i] * gam[i] * gam[i]
+        s2 += w[i] * s_diag[i]
+    if not s2 > 0.0:
+        return -np.inf
+    return -0.5 * (e2 / s2 + math.log(s2) + LOG_2PI)
+
+
+# ----------------------------------------------------------------------------- one filter
+@njit(cache=True, error_model="numpy", fastmath=FAST)
+def filter_step(
+    f: int,
+    bank: BankArrays,
+    xs: FloatArray,
+    ps: FloatArray,
+    vs: FloatArray,
+    vflags: FloatArray,
+    du: FloatArray,
+    ytil: FloatArray,
+    valid: IntArray,
+    nv: int,
+    variant: int,
+    likelihood: int,
+    rho: float,
+    beta: float,
+    work: FloatArray,
+    mats: FloatArray,
+    out2: FloatArray,
+) -> int:
+    """Advance filter ``f`` (its rows of ``xs`` (nh, na), ``ps`` (nh, na, na), ``vs``
+    (nh, p, p), ``vflags`` (nh,)) by one sample; returns 0, or 1 when S was not positive
+    definite (the update is then skipped). ``out2[0]`` receives the log-likelihood, ``out2[1]``
+    the NIS. ``work`` (6, max(na, p)) and ``mats`` (7, w, w), w = max(na, p), are scratch.
+
+    Equations (docs/methods-stmmae.md), with gamma the innovation on the valid rows:
+
+        x-   = Phi x + G u + c,   gamma = y - H x-,   A = Phi P Phi^T
+        V    = gamma gamma^T (first) | (rho V + gamma gamma^T) / (1 + rho)
+        N    = V - beta R - H Q H^T,   M_jj = (A H^T W H)_jj,   W = diag(1 / R_jj)
+        c_k  = tr(W N) / sum_j a_j M_jj,  lambda_j = max(1, a_j c_k)
+        P-   = L A L + Q (improved) | L A + Q (strong_tracking) | A + Q (emmae), L = diag(lambda)
+        S    = H P- H^T + R,  K = P- H^T S^-1,  x = x- + K gamma,  P = P- - K H P-
+
+    The fading factors are computed only when every measurement is present. Arrays are
+    indexed in place (no views are made per sample: each view costs reference counting).
+    """
+    na = xs.shape[1]
+    p_all = bank.r.shape[0]
+    m = du.shape[0]
+    xp = work[0]
+    gam = work[1]
+    lam = work[2]
+    s_diag = work[3]
+    ewv = work[4]
+    sol = work[5]
+    tmp = mats[0]
+    amat = mats[1]
+    pp = mats[2]
+    pht = mats[3]  # (P- H^T)^T, rows: valid measurements
+    kt = mats[4]  # K^T
+    smat = mats[5]
+    hp = mats[6]  # H P-
+    for i in range(na):
+        s = bank.offset[f, i]
+        for e in range(bank.phi_nnz[f, i]):
+            s += bank.phi_vals[f, i, e] * xs[f, bank.phi_cols[f, i, e]]
+        for j in range(m):
+            s += bank.gin[f, i, j] * du[j]
+        xp[i] = s
+    for a in range(nv):
+        r = valid[a]
+        s = ytil[r]
+        for e in range(bank.h_nnz[r]):
+            s -= bank.h_vals[r, e] * xp[bank.h_cols[r, e]]
+        gam[a] = s
+    # A = Phi P Phi^T in row-times-matrix (axpy) order: contiguous inner loops
+    for i in range(na):
+        for j in range(na):
+            tmp[i, j] = 0.0
+        for e in range(bank.phi_nnz[f, i]):
+            c = bank.phi_cols[f, i, e]
+            v = bank.phi_vals[f, i, e]
+            for j in range(na):
+                tmp[i, j] += v * ps[f, c, j]
+    symmetric = variant != VARIANT_STRONG_TRACKING
+    for i in range(na):
+        for j in range(na):
+            amat[i, j] = 0.0
+        for t in range(na):
+            v = tmp[i, t]
+            for j in range(na):
+                amat[i, j] += v * bank.phi_t[f, t, j]
+    for j in range(na):
+        lam[j] = 1.0
+    if variant != VARIANT_EMMAE and nv == p_all:
+        if vflags[f] == 0.0:
+            for a in range(p_all):
+                for b in range(p_all):
+                    vs[f, a, b] = gam[a] * gam[b]
+            vflags[f] = 1.0
+        else:
+            for a in range(p_all):
+                for b in range(p_all):
+                    vs[f, a, b] = (rho * vs[f, a, b] + gam[a] * gam[b]) / (1.0 + rho)
+        tr_n = 0.0
+        for a in range(p_all):
+            tr_n += bank.euclid_weights[a] * (
+                vs[f, a, a] - beta * bank.r[a, a] - bank.hqh_diag[f, a]
+            )
+        msum = 0.0
+        for j in range(na):
+            mjj = 0.0
+            for e in range(bank.hth_nnz[j]):
+                mjj += amat[j, bank.hth_cols[j, e]] * bank.hth_vals[j, e]
+            msum += bank.fading_weights[f, j] * mjj
+        if msum > 0.0 and tr_n > 0.0:
+            ck = tr_n / msum
+            for j in range(na):
+                v = bank.fading_weights[f, j] * ck
+                if v > 1.0:
+                    lam[j] = v
+    if variant == VARIANT_IMPROVED:
+        for i in range(na):
+            for j in range(na):
+                pp[i, j] = lam[i] * amat[i, j] * lam[j] + bank.q[f, i, j]
+    elif variant == VARIANT_STRONG_TRACKING:
+        for i in range(na):
+            for j in range(na):
+                pp[i, j] = lam[i] * amat[i, j] + bank.q[f, i, j]
+    else:
+        for i in range(na):
+            for j in range(na):
+                pp[i, j] = amat[i, j] + bank.q[f, i, j]
+    if nv == 0:
+        _accept_prior(f, xs, ps, xp, pp)
+        out2[0] = 0.0
+        out2[1] = np.nan
+        return 0
+    for a in range(nv):
+        r = valid[a]
+        for i in range(na):
+            s = 0.0
+            for e in range(bank.h_nnz[r]):
+                s += pp[i, bank.h_cols[r, e]] * bank.h_vals[r, e]
+            pht[a, i] = s
+    for a in range(nv):
+        ra = valid[a]
+        for b in range(nv):
+            s = bank.r[ra, valid[b]]
+            for e in range(bank.h_nnz[ra]):
+                s += bank.h_vals[ra, e] * pht[b, bank.h_cols[ra, e]]
+            smat[a, b] = s
+        s_diag[a] = smat[a, a]
+        ewv[a] = bank.euclid_weights[ra]
+    if not lu_nopivot(smat, nv):
+        _accept_prior(f, xs, ps, xp, pp)
+        out2[0] = -np.inf
+        out2[1] = np.nan
+        return 1
+    lu_solve(smat, nv, gam, sol)
+    nis = 0.0
+    logdet = 0.0
+    for a in range(nv):
+        nis += gam[a] * sol[a]
+        logdet += math.log(smat[a, a])
+    out2[1] = nis
+    if likelihood == LIKELIHOOD_GAUSSIAN:
+        out2[0] = -0.5 * (nis + logdet + nv * LOG_2PI)
+    else:
+        out2[0] = euclidean_loglik(gam, s_diag, ewv, nv)
+    # K^T from S^T K^T = H P-^T = U^T L^T K^T, all columns at once (contiguous rows)
+    for a in range(nv):
+        for i in range(na):
+            kt[a, i] = pht[a, i]
+        for t in range(a):
+            v = smat[t, a]
+            for i in range(na):
+                kt[a, i] -= v * kt[t, i]
+        v = 1.0 / smat[a, a]
+        for i in range(na):
+            kt[a, i] *= v
+    for a in range(nv - 1, -1, -1):
+        for t in range(a + 1, nv):
+            v = smat[t, a]
+            for i in range(na):
+                kt[a, i] -= v * kt[t, i]
+    for i in range(na):
+        s = xp[i]
+        for a in range(nv):
+            s += kt[a, i] * gam[a]
+        xs[f, i] = s
+    # P = P- - K (H P-); H P- = (P- H^T)^T when P- is symmetric
+    if symmetric:
+        for a in range(nv):
+            for j in range(na):
+                hp[a, j] = pht[a, j]
+    else:
+        for a in range(nv):
+            r = valid[a]
+            for j in range(na):
+                s = 0.0
+                for e in range(bank.h_nnz[r]):
+                    s += bank.h_vals[r, e] * pp[bank.h_cols[r, e], j]
+                hp[a, j] = s
+    for i in range(na):
+        for j in range(na):
+            ps[f, i, j] = pp[i, j]
+        for a in range(nv):
+            v = kt[a, i]
+            for j in range(na):
+                ps[f, i, j] -= v * hp[a, j]
+    if symmetric:
+        for i in range(na):
+            for j in range(i + 1, na):
+                v = 0.5 * (ps[f, i, j] + ps[f, j, i])
+                ps[f, i, j] = v
+                ps[f, j, i] = v
+    return 0
+
+
+@njit(cache=True, error_model="numpy")
+def _accept_prior(f: int, xs: FloatArray, ps: FloatArray, xp: FloatArray, pp: FloatArray) -> None:
+    """No update: the posterior is the prior."""
+    na = xs.shape[1]
+    for i in range(na):
+        xs[f, i] = xp[i]
+        for j in range(na):
+            ps[f, i, j] = pp[i, j]
+
+
+# ----------------------------------------------------------------------------- bank
+@njit(cache=True, error_model="numpy")
+def _bayes(probs: FloatArray, ll: FloatArray, floor: float) -> None:
+    """``p_i <- p_i f_i / sum_j p_j f_j`` in the log domain, then the floor and renormalization.
+    Hypotheses whose likelihood is not finite get zero weight (then the floor); if none is
+    finite the probabilities are left unchanged."""
+    nh = probs.shape[0]
+    best = -np.inf
+    for i in range(nh):
+        if math.isfinite(ll[i]) and probs[i] > 0.0:
+            v = math.log(probs[i]) + ll[i]
+            if v > best:
+                best = v
+    if best == -np.inf:
+        return
+    total = 0.0
+    for i in range(nh):
+        if math.isfinite(ll[i]) and probs[i] > 0.0:
+            w = math.exp(math.log(probs[i]) + ll[i] - best)
+        else:
+            w = 0.0
+        probs[i] = w
+        total += w
+    total2 = 0.0
+    for i in range(nh):
+        v = probs[i] / total
+        if v < floor:
+            v = floor
+        probs[i] = v
+        total2 += v
+    for i in range(nh):
+        probs[i] /= total2
+
+
+@njit(cache=True, error_model="numpy")
+def _episode_add(dec: FloatArray, h: int, value: float) -> None:
+    dec[h, D_EP_SUM] += value
+    dec[h, D_EP_SUMSQ] += value * value
+    dec[h, D_EP_N] += 1.0
+
+
+@njit(cache=True, error_model="numpy")
+def episode_mean(dec: FloatArray, h: int) -> float:
+    """Mean smoothed deflection over the episode's span (NaN if empty)."""
+    n = dec[h, D_EP_N]
+    return dec[h, D_EP_SUM] / n if n > 0.0 else np.nan
+
+
+@njit(cache=True, error_model="numpy")
+def episode_swing(dec: FloatArray, h: int) -> float:
+    """Twice the standard deviation of the smoothed deflection over the episode's span (0 if
+    empty): the peak-to-peak swing of a square wave, 0.71 times that of a sine."""
+    n = dec[h, D_EP_N]
+    if n <= 0.0:
+        return 0.0
+    mean = dec[h, D_EP_SUM] / n
+    return 2.0 * math.sqrt(max(dec[h, D_EP_SUMSQ] / n - mean * mean, 0.0))
+
+
+@njit(cache=True, error_model="numpy")
+def _write_event(
+    events: FloatArray, n_ev: int, t: float, kind: float, dec: FloatArray, h: int
+) -> FloatArray:
+    """Append one event row (doubling the array when full); returns the array."""
+    if n_ev >= events.shape[0]:
+        bigger = np.empty((2 * events.shape[0], EV_LEN))
+        bigger[:n_ev] = events[:n_ev]
+        events = bigger
+    row = events[n_ev]
+    row[EV_T] = t
+    row[EV_KIND] = kind
+    row[EV_HYP] = h + 1
+    row[EV_ONSET_T] = dec[h, D_ONSET_T]
+    row[EV_DETECTED_T] = dec[h, D_DETECTED_T]
+    row[EV_CLEARED_T] = t if kind == EV_CLEARED else np.nan
+    row[EV_SWING] = episode_swing(dec, h)
+    row[EV_MEAN] = episode_mean(dec, h)
+    return events
+
+
+@njit(cache=True, error_model="numpy")
+def _decide(
+    cfg: FloatArray,
+    dec: FloatArray,
+    h: int,
+    t: float,
+    dt: float,
+    prob: float,
+    defl: float,
+    cmd: float,
+    a_smooth: float,
+) -> int:
+    """Detection and clearance logic of one fault hypothesis at one sample; returns 0, or
+    ``EV_DETECTED``/``EV_CLEARED`` (the caller writes the event from ``dec[h]``; after a clearance
+    the episode fields are reset by :func:`reset_after_clearance`)."""
+    lim = cfg[CFG_LIMIT]
+    defl = min(max(defl, -lim), lim)
+    if dec[h, D_SMOOTH_SET] == 0.0 or not dt > 0.0:
+        dec[h, D_SMOOTH] = defl
+        dec[h, D_SMOOTH_SET] = 1.0
+    else:
+        dec[h, D_SMOOTH] += a_smooth * (defl - dec[h, D_SMOOTH])
+    active = dec[h, D_ACTIVE] == 1.0
+    if prob > cfg[CFG_ONSET_P]:
+        if math.isnan(dec[h, D_ONSET_T]):
+            dec[h, D_ONSET_T] = t
+    elif not active:
+        dec[h, D_ONSET_T] = np.nan
+    holds = prob > cfg[CFG_DETECT_P]
+    if not active:
+        if holds and abs(dec[h, D_SMOOTH] - cmd) > cfg[CFG_MIN_ERR]:
+            if math.isnan(dec[h, D_ABOVE_T]):
+                dec[h, D_ABOVE_T] = t
+                dec[h, D_EP_N] = 0.0
+                dec[h, D_EP_SUM] = 0.0
+                dec[h, D_EP_SUMSQ] = 0.0
+            _episode_add(dec, h, dec[h, D_SMOOTH])
+            if t - dec[h, D_ABOVE_T] >= cfg[CFG_HOLD_S]:
+                dec[h, D_ACTIVE] = 1.0
+                dec[h, D_DETECTED_T] = t
+                dec[h, D_BELOW_T] = np.nan
+                return 1
+        else:
+            dec[h, D_ABOVE_T] = np.nan
+        return 0
+    if holds and t - dec[h, D_DETECTED_T] <= cfg[CFG_KIND_WINDOW_S]:
+        _episode_add(dec, h, dec[h, D_SMOOTH])
+    if prob < cfg[CFG_CLEAR_P]:
+        if math.isnan(dec[h, D_BELOW_T]):
+            dec[h, D_BELOW_T] = t
+        if t - dec[h, D_BELOW_T] >= cfg[CFG_CLEAR_HOLD_S]:
+            return 2
+    else:
+        dec[h, D_BELOW_T] = np.nan
+    return 0
+
+
+@njit(cache=True, error_model="numpy")
+def reset_after_clearance(dec: FloatArray, h: int) -> None:
+    """Back to "no fault" after a clearance event was written."""
+    dec[h, D_ACTIVE] = 0.0
+    dec[h, D_ABOVE_T] = np.nan
+    dec[h, D_ONSET_T] = np.nan
+    dec[h, D_BELOW_T] = np.nan
+    dec[h, D_DETECTED_T] = np.nan
+    dec[h, D_EP_N] = 0.0
+    dec[h, D_EP_SUM] = 0.0
+    dec[h, D_EP_SUMSQ] = 0.0
+
+
+@njit(cache=True, error_model="numpy")
+def _close_window(wacc: FloatArray, t_end: float, row: FloatArray) -> None:
+    row[:] = np.nan
+    n = wacc[W_COUNT]
+    row[WIN_T0] = wacc[W_T0]
+    row[WIN_T1] = t_end
+    row[WIN_N] = n
+    row[WIN_NOMINAL_MEAN] = wacc[W_SUM_NOMINAL] / n
+    row[WIN_MAX_FAULT] = wacc[W_MAX_FAULT]
+    row[WIN_MAX_FAULT_HYP] = wacc[W_MAX_FAULT_HYP]
+    if wacc[W_N_NIS] > 0.0:
+        row[WIN_NIS_MEAN] = wacc[W_SUM_NIS] / wacc[W_N_NIS]
+    row[WIN_ACTIVE_FRACTION] = wacc[W_N_ACTIVE] / n
+    row[WIN_COV_FAIL] = wacc[W_COV_FAIL]
+    wacc[:] = 0.0
+
+
+def bank_batch(
+    cfg: FloatArray,
+    arrays: BankArrays,
+    st: FloatArray,
+    t: FloatArray,
+    y: FloatArray,
+    u: FloatArray,
+    surface_inputs: IntArray,
+) -> tuple[FloatArray, FloatArray, FloatArray, int]:
+    """Run the bank over one batch, updating ``st`` in place.
+
+    Args:
+        cfg: scalar configuration (``CFG_*``).
+        arrays: the bank's matrices.
+        st: state vector (:func:`state_layout`).
+        t: sample times, shape (k,).
+        y: measurements, shape (p, k); NaN = missing.
+        u: inputs (commands), shape (m, k); NaN = hold the last valid value.
+        surface_inputs: input index of each monitored surface, shape (nh - 1,).
+
+    Returns:
+        ``(samples, windows, events, status)``: ``samples`` is (nh + n + (nh - 1) + 1, k):
+        probabilities, blended states, deflection estimates, NIS of the no-fault filter;
+        ``windows``/``events`` are row arrays (``WIN_LEN``/``EV_LEN`` columns); ``status`` is 0,
+        or -1 when the times are not strictly increasing (``st`` is then left untouched).
+    """
+    nh, na = arrays.x0.shape
+    n = na - 1
+    samples = np.empty((nh + n + (nh - 1) + 1, t.shape[0]))
+    windows, events, status = _bank_kernel(cfg, arrays, st, t, y, u, surface_inputs, samples)
+    return samples, windows, events, status
+
+
+@njit(cache=True, error_model="numpy")
+def _unpack(
+    st: FloatArray, nh: int, na: int, p: int
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Filter blocks of the state vector as arrays ``(xs, ps, vs, vflags)``."""
+    flen = na + na * na + p * p + 1
+    xs = np.empty((nh, na))
+    ps = np.empty((nh, na, na))
+    vs = np.empty((nh, p, p))
+    vflags = np.empty(nh)
+    for f in range(nh):
+        off = ST_HEADER + f * flen
+        for i in range(na):
+            xs[f, i] = st[off + i]
+            for j in range(na):
+                ps[f, i, j] = st[off + na + i * na + j]
+        voff = off + na + na * na
+        for a in range(p):
+            for b in range(p):
+                vs[f, a, b] = st[voff + a * p + b]
+        vflags[f] = st[voff + p * p]
+    return xs, ps, vs, vflags
+
+
+@njit(cache=True, error_model="numpy")
+def _pack(
+    st: FloatArray, xs: FloatArray, ps: FloatArray, vs: FloatArray, vflags: FloatArray
+) -> None:
+    """Inverse of :func:`_unpack`."""
+    nh, na = xs.shape
+    p = vs.shape[1]
+    flen = na + na * na + p * p + 1
+    for f in range(nh):
+        off = ST_HEADER + f * flen
+        for i in range(na):
+            st[off + i] = xs[f, i]
+            for j in range(na):
+                st[off + na + i * na + j] = ps[f, i, j]
+        voff = off + na + na * na
+        for a in range(p):
+            for b in range(p):
+                st[voff + a * p + b] = vs[f, a, b]
+        st[voff + p * p] = vflags[f]
+
+
+@njit(cache=True, error_model="numpy")
+def _bank_kernel(
+    cfg: FloatArray,
+    bank: BankArrays,
+    st: FloatArray,
+    t: FloatArray,
+    y: FloatArray,
+    u: FloatArray,
+    surface_inputs: IntArray,
+    samples: FloatArray,
+) -> tuple[FloatArray, FloatArray, int]:
+    """The compiled loop of :func:`bank_batch`."""
+    k_len = t.shape[0]
+    nh, na = bank.offset.shape
+    n = na - 1
+    p = bank.r.shape[0]
+    m = u.shape[0]
+    for k in range(1, k_len):
+        if not t[k] > t[k - 1]:
+            return np.empty((0, WIN_LEN)), np.empty((0, EV_LEN)), -1
+    flen = na + na * na + p * p + 1
+    lay_probs = ST_HEADER + nh * flen
+    lay_u = lay_probs + nh
+    lay_dec = lay_u + m
+    lay_win = lay_dec + (nh - 1) * D_LEN
+    hw = cfg[CFG_WINDOW]
+    windows = np.empty((int(k_len // hw) + 1, WIN_LEN))
+    events = np.empty((8, EV_LEN))
+    n_win = 0
+    n_ev = 0
+    variant = int(cfg[CFG_VARIANT])
+    likelihood = int(cfg[CFG_LIKELIHOOD])
+    rho = cfg[CFG_RHO]
+    beta = cfg[CFG_BETA]
+    xs, ps, vs, vflags = _unpack(st, nh, na, p)
+    dec = st[lay_dec : lay_dec + (nh - 1) * D_LEN].copy().reshape((nh - 1, D_LEN))
+    probs = st[lay_probs : lay_probs + nh]
+    u_last = st[lay_u : lay_u + m]
+    wacc = st[lay_win : lay_win + W_LEN]
+    du = np.empty(m)
+    ytil = np.empty(p)
+    valid = np.empty(p, dtype=np.int64)
+    ll = np.empty(nh)
+    wide = max(na, p)
+    work = np.empty((6, wide))
+    mats = np.empty((7, wide, wide))
+    out2 = np.empty(2)
+    nis0 = np.nan
+    for k in range(k_len):
+        tk = t[k]
+        for j in range(m):
+            v = u[j, k]
+            if math.isfinite(v):
+                u_last[j] = v
+            du[j] = u_last[j] - bank.u_trim[j]
+        nv = 0
+        for a in range(p):
+            v = y[a, k]
+            if math.isfinite(v):
+                ytil[a] = v - bank.y_trim[a]
+                valid[nv] = a
+                nv += 1
+        fails = 0
+        for f in range(nh):
+            fails += filter_step(
+                f,
+                bank,
+                xs,
+                ps,
+                vs,
+                vflags,
+                du,
+                ytil,
+                valid,
+                nv,
+                variant,
+                likelihood,
+                rho,
+                beta,
+                work,
+                mats,
+                out2,
+            )
+            ll[f] = out2[0] if not math.isnan(out2[0]) else -np.inf
+            if f == 0:
+                nis0 = out2[1] / nv if nv > 0 else np.nan
+        st[ST_COV_FAIL] += fails
+        if nv > 0:
+            _bayes(probs, ll, cfg[CFG_FLOOR])
+        # per-sample outputs
+        row = 0
+        for f in range(nh):
+            samples[row, k] = probs[f]
+            row += 1
+        for i in range(n):
+            s = 0.0
+            for f in range(nh):
+                s += probs[f] * xs[f, i]
+            samples[row, k] = bank.x_trim[i] + s
+            row += 1
+        dt = tk - st[ST_T_PREV] if st[ST_N_SEEN] > 0.0 else 0.0
+        a_smooth = 1.0 - math.exp(-dt / cfg[CFG_SMOOTH_S])
+        any_active = False
+        max_fault = -1.0
+        max_hyp = 0
+        for h in range(nh - 1):
+            defl = xs[h + 1, n]
+            samples[row, k] = defl
+            row += 1
+            cmd = u_last[surface_inputs[h]]
+            code = _decide(cfg, dec, h, tk, dt, probs[h + 1], defl, cmd, a_smooth)
+            if code != 0:
+                events = _write_event(events, n_ev, tk, float(code), dec, h)
+                n_ev += 1
+                if code == 2:
+                    reset_after_clearance(dec, h)
+            if dec[h, D_ACTIVE] == 1.0:
+                any_active = True
+            if probs[h + 1] > max_fault:
+                max_fault = probs[h + 1]
+                max_hyp = h + 1
+        samples[row, k] = nis0
+        # health window
+        if wacc[W_COUNT] == 0.0:
+            wacc[W_T0] = tk
+            wacc[W_MAX_FAULT] = -1.0
+        wacc[W_COUNT] += 1.0
+        wacc[W_SUM_NOMINAL] += probs[0]
+        if max_fault > wacc[W_MAX_FAULT]:
+            wacc[W_MAX_FAULT] = max_fault
+            wacc[W_MAX_FAULT_HYP] = max_hyp
+        if math.isfinite(nis0):
+            wacc[W_SUM_NIS] += nis0
+            wacc[W_N_NIS] += 1.0
+        if any_active:
+            wacc[W_N_ACTIVE] += 1.0
+        wacc[W_COV_FAIL] += fails
+        if wacc[W_COUNT] >= hw:
+            _close_window(wacc, tk, windows[n_win])
+            n_win += 1
+        st[ST_T_PREV] = tk
+        st[ST_N_SEEN] += 1.0
+    _pack(st, xs, ps, vs, vflags)
+    st[lay_dec : lay_dec + (nh - 1) * D_LEN] = dec.ravel()
+    return windows[:n_win].copy(), events[:n_ev].copy(), 0

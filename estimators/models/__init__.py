@@ -1,0 +1,1 @@
+"""Reference plant models shipped with the estimators (linearized, discrete, JSON-ready)."""
