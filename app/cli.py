@@ -59,7 +59,12 @@ def cmd_serve(args: argparse.Namespace) -> int:
     else:
         print(f"fleethealth serving on {url} (API docs at {url}/docs)", flush=True)
     config = uvicorn.Config(
-        create_app(s), host=host, port=port, log_level=args.log_level, ws_max_size=s.ws_max_frame_bytes
+        create_app(s),
+        host=host,
+        port=port,
+        log_level=args.log_level,
+        ws_max_size=s.ws_max_frame_bytes,
+        timeout_graceful_shutdown=s.shutdown_timeout_s,
     )
     try:
         uvicorn.Server(config).run(sockets=[_listen(host, port, s.socket_send_buffer_bytes)])

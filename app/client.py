@@ -392,6 +392,17 @@ class _Core:
         params = _drop_none({"estimator": estimator, "from_s": from_s, "to_s": to_s})
         return _Request("GET", f"{_actuator_path(tail, actuator_id)}/outputs", params=params)
 
+    @staticmethod
+    def rul(
+        tail: str, actuator_id: str, estimator: str | None, from_s: float | None, to_s: float | None
+    ) -> _Request:
+        params = _drop_none({"estimator": estimator, "from_s": from_s, "to_s": to_s})
+        return _Request("GET", f"{_actuator_path(tail, actuator_id)}/rul", params=params)
+
+    @staticmethod
+    def faults(tail: str, actuator_id: str) -> _Request:
+        return _Request("GET", f"{_actuator_path(tail, actuator_id)}/faults")
+
     def kwargs(self, request: _Request, default_timeout_s: float) -> dict[str, Any]:
         headers = dict(self.headers)
         if request.content_type:
@@ -587,6 +598,21 @@ class FleetHealthClient:
     ) -> dict[str, Any]:
         return self._send(_Core.outputs(tail, actuator_id, estimator, from_s, to_s))
 
+    def rul(
+        self,
+        tail: str,
+        actuator_id: str,
+        estimator: str | None = None,
+        from_s: float | None = None,
+        to_s: float | None = None,
+    ) -> dict[str, Any]:
+        """Latest RUL prognosis per estimator and those made in [from_s, to_s]."""
+        return self._send(_Core.rul(tail, actuator_id, estimator, from_s, to_s))
+
+    def faults(self, tail: str, actuator_id: str) -> dict[str, Any]:
+        """Diagnoses, active faults and fault events."""
+        return self._send(_Core.faults(tail, actuator_id))
+
     def fleet_health(self, sort: str = "status") -> dict[str, Any]:
         return self._send(_Request("GET", "/v1/fleet/health", params={"sort": sort}))
 
@@ -769,6 +795,21 @@ class AsyncFleetHealthClient:
         to_s: float | None = None,
     ) -> dict[str, Any]:
         return await self._send(_Core.outputs(tail, actuator_id, estimator, from_s, to_s))
+
+    async def rul(
+        self,
+        tail: str,
+        actuator_id: str,
+        estimator: str | None = None,
+        from_s: float | None = None,
+        to_s: float | None = None,
+    ) -> dict[str, Any]:
+        """Latest RUL prognosis per estimator and those made in [from_s, to_s]."""
+        return await self._send(_Core.rul(tail, actuator_id, estimator, from_s, to_s))
+
+    async def faults(self, tail: str, actuator_id: str) -> dict[str, Any]:
+        """Diagnoses, active faults and fault events."""
+        return await self._send(_Core.faults(tail, actuator_id))
 
     async def fleet_health(self, sort: str = "status") -> dict[str, Any]:
         return await self._send(_Request("GET", "/v1/fleet/health", params={"sort": sort}))

@@ -38,6 +38,7 @@ class Settings(BaseSettings):
     ws_close_timeout_s: float = Field(default=10.0, gt=0)
     ws_result_poll_s: float = Field(default=1.0, gt=0)
     socket_send_buffer_bytes: int | None = Field(default=None, gt=0)
+    shutdown_timeout_s: float = Field(default=10.0, gt=0)
 
     @field_validator("bootstrap_admin_key")
     @classmethod

@@ -9,10 +9,11 @@ from dataclasses import dataclass, field
 from types import ModuleType
 from typing import Any
 
-from estimators import fakf
+from estimators import fakf, stmmae
 
 ESTIMATORS: dict[str, ModuleType] = {
     fakf.NAME: fakf,
+    stmmae.NAME: stmmae,
 }
 
 
@@ -39,6 +40,26 @@ ACTUATOR_KINDS: dict[str, ActuatorKind] = {
         description="Electro-mechanical actuator, motor voltage monitoring (current, voltage) -> FAKF",
         channels=("current", "voltage"),
         default_estimators={"fakf": {}},
+    ),
+    "flight_controls": ActuatorKind(
+        name="flight_controls",
+        description="Small-UAV control surfaces (rates rad/s, angles rad, airspeed m/s, commands "
+        "rad, throttle 0..1) -> STMMAE fault isolation",
+        channels=(
+            "p",
+            "q",
+            "r",
+            "alpha",
+            "beta",
+            "airspeed",
+            "cmd_aileron_left",
+            "cmd_aileron_right",
+            "cmd_elevator_left",
+            "cmd_elevator_right",
+            "cmd_rudder",
+            "cmd_throttle",
+        ),
+        default_estimators={"stmmae": {}},
     ),
 }
 

@@ -33,6 +33,7 @@ from app.streaming import StreamRefused
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 ACTUATOR_KIND = "ema_voltage"
+FLIGHT_KIND = "flight_controls"
 CHANNELS = ("current", "voltage")
 #: Actuator slots per aircraft; more actuators than names get ``ema-<n>``.
 ACTUATOR_NAMES = ("ema-left", "ema-right", "ema-rudder", "ema-nose")
@@ -72,6 +73,8 @@ class _Stream:
     t_next_s: float
     t_begin_s: float
     cycle_index: int = 0
+    kind: str = ACTUATOR_KIND
+    inject_faults: bool = False
     pending_t: np.ndarray | None = None
     pending: dict[str, np.ndarray] | None = None
     pending_pos: int = 0
@@ -156,6 +159,80 @@ class _Fleet:
             needed -= take
         t_s = np.concatenate(t_parts)
         stream.t_next_s = float(t_s[-1]) + 1.0 / self.sample_rate_hz
+        return t_s, {name: np.concatenate(chunks) for name, chunks in parts.items()}
+
+
+#: Stream seconds of one simulated flight of a flight-controls unit (the plant restarts from trim).
+FLIGHT_CHUNK_S = 300.0
+#: The flight-controls reference model is discrete at 100 Hz; its telemetry uses that rate.
+FLIGHT_RATE_HZ = 100.0
+FAULT_MODES = ("none", "paper", "random")
+
+
+def random_fault_schedule(rng: np.random.Generator, duration_s: float) -> tuple[Any, ...]:
+    """Two surface faults at random times in a flight: a stuck surface and an oscillating one,
+    each 10-30 s long, on two different surfaces, with random positions and swings."""
+    from estimators.models.small_uav import SURFACES
+    from estimators.simulators.uav_closed_loop import SurfaceFault
+
+    first, second = rng.choice(len(SURFACES), size=2, replace=False)
+    half = duration_s / 2.0
+    out = []
+    for k, surface in enumerate((SURFACES[first], SURFACES[second])):
+        length = float(rng.uniform(10.0, 30.0))
+        start = float(k * half + rng.uniform(20.0, max(21.0, half - length - 20.0)))
+        limit = 3.0 if surface == "rudder" else 12.0
+        if k == 0:
+            pos = float(np.round(rng.uniform(2.0, limit) * rng.choice([-1.0, 1.0]), 1))
+            out.append(SurfaceFault(surface, start, start + length, "stuck", position_deg=pos))
+        else:
+            amp = float(np.round(rng.uniform(2.0, limit), 1))
+            out.append(
+                SurfaceFault(surface, start, start + length, "square", amplitude_deg=amp,
+                             period_s=float(np.round(rng.uniform(1.0, 3.0), 1)))
+            )
+    return tuple(out)
+
+
+class _Flights:
+    """Flight-controls telemetry: closed-loop flights of :data:`FLIGHT_CHUNK_S` seconds with the
+    stream's fault schedule, cut into batches."""
+
+    def __init__(self, faults_for: Callable[[_Stream, int], tuple[Any, ...]]) -> None:
+        self.faults_for = faults_for
+
+    def _next_chunk(self, stream: _Stream) -> None:
+        from estimators.simulators.uav_closed_loop import simulate_flight
+
+        faults = self.faults_for(stream, stream.cycle_index)
+        t, channels, _truth = simulate_flight(
+            FLIGHT_CHUNK_S,
+            sample_rate_hz=FLIGHT_RATE_HZ,
+            faults=faults,
+            seed=stream.seed * 1_000_003 + stream.cycle_index,
+        )
+        stream.cycle_index += 1
+        stream.pending_t = stream.t_next_s + np.arange(len(t), dtype=np.float64) / FLIGHT_RATE_HZ
+        stream.pending = {k: np.asarray(v, dtype=np.float64) for k, v in channels.items()}
+        stream.pending_pos = 0
+
+    def next_batch(self, stream: _Stream, n_samples: int) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        t_parts: list[np.ndarray] = []
+        parts: dict[str, list[np.ndarray]] = {}
+        needed = n_samples
+        while needed > 0:
+            if stream.pending_t is None or stream.pending_pos >= len(stream.pending_t):
+                self._next_chunk(stream)
+            assert stream.pending_t is not None and stream.pending is not None
+            take = min(needed, len(stream.pending_t) - stream.pending_pos)
+            sl = slice(stream.pending_pos, stream.pending_pos + take)
+            t_parts.append(stream.pending_t[sl])
+            for name, values in stream.pending.items():
+                parts.setdefault(name, []).append(values[sl])
+            stream.pending_pos += take
+            needed -= take
+        t_s = np.concatenate(t_parts)
+        stream.t_next_s = float(t_s[-1]) + 1.0 / FLIGHT_RATE_HZ
         return t_s, {name: np.concatenate(chunks) for name, chunks in parts.items()}
 
 
@@ -262,6 +339,8 @@ def run_simulation(
     stop_event: threading.Event | None = None,
     log: Log = print,
     transport: str = "rest",
+    flight_controls: bool = False,
+    faults: str = "random",
 ) -> SimulationSummary:
     """Register a demo fleet and stream simulated EMA telemetry to it.
 
@@ -282,6 +361,11 @@ def run_simulation(
         ready_timeout_s: how long to wait for the server's ``/readyz``.
         stop_event: set it to stop after the current batch.
         log: receives one line per notable event.
+        flight_controls: also give every aircraft a ``flight-controls`` unit (kind
+            ``flight_controls``, STMMAE attached) flying the reference UAV at 100 Hz.
+        faults: surface faults injected into the flight controls of every second aircraft:
+            ``"random"`` (a stuck and an oscillating surface per 300 s flight), ``"paper"`` (the
+            seed paper's five-fault sequence) or ``"none"``.
         transport: ``"rest"`` posts batches; ``"ws"`` streams them as WebSocket frames (JSON
             frames for ``fmt="json"``, Arrow frames otherwise), resuming after a dropped
             connection.
@@ -291,6 +375,8 @@ def run_simulation(
     """
     if fmt not in BATCH_FORMATS:
         raise ValueError(f"unknown format {fmt!r}")
+    if faults not in FAULT_MODES:
+        raise ValueError(f"unknown fault mode {faults!r}; use one of {', '.join(FAULT_MODES)}")
     if transport not in TRANSPORTS:
         raise ValueError(f"unknown transport {transport!r}; use one of {', '.join(TRANSPORTS)}")
     if sample_rate_hz <= 0 or batch_seconds <= 0:
@@ -336,6 +422,42 @@ def run_simulation(
             summary.actuators.append((tail, actuator_id))
             wear = "" if pace is None else f", friction grows over {pace * degrade_over_s:g} s"
             log(f"simulate: {tail}/{actuator_id} load {load_lbs:+.1f} lbs{wear}")
+        if flight_controls:
+            for a, tail in enumerate(list(summary.aircraft)):
+                actuator_id = "flight-controls"
+                client.create_actuator(tail, actuator_id, kind=FLIGHT_KIND)
+                t_last = client.health(tail, actuator_id).get("t_last_s")
+                t_start = now_s if t_last is None else float(t_last) + 1.0 / FLIGHT_RATE_HZ
+                if realtime and t_last is not None:
+                    t_start = max(now_s, t_start)
+                inject = faults != "none" and a % 2 == 1
+                streams.append(
+                    _Stream(
+                        tail=tail,
+                        actuator_id=actuator_id,
+                        load_lbs=0.0,
+                        degrade_over_s=None,
+                        seed=seed * 10_007 + 5_000 + a,
+                        t_next_s=t_start,
+                        t_begin_s=t_start,
+                        kind=FLIGHT_KIND,
+                        inject_faults=inject,
+                    )
+                )
+                summary.actuators.append((tail, actuator_id))
+                log(f"simulate: {tail}/{actuator_id} flight controls" + (f", {faults} faults" if inject else ""))
+
+        def faults_for(stream: _Stream, chunk: int) -> tuple[Any, ...]:
+            if not stream.inject_faults:
+                return ()
+            if faults == "paper":
+                from estimators.simulators.uav_closed_loop import PAPER_FAULT_SCHEDULE
+
+                return PAPER_FAULT_SCHEDULE
+            return random_fault_schedule(np.random.default_rng((stream.seed, chunk)), FLIGHT_CHUNK_S)
+
+        flights = _Flights(faults_for)
+        flight_batch = max(1, round(batch_seconds * FLIGHT_RATE_HZ))
 
         fleet = _Fleet(streams, sample_rate_hz, simulate, _nominal_friction())
         ws = _WsSenders(base_url, api_key, binary=fmt != "json") if transport == "ws" else None
@@ -356,7 +478,10 @@ def run_simulation(
                     else:
                         time.sleep(ahead_s)
             for stream in streams:
-                t_s, channels = fleet.next_batch(stream, samples_per_batch)
+                if stream.kind == FLIGHT_KIND:
+                    t_s, channels = flights.next_batch(stream, flight_batch)
+                else:
+                    t_s, channels = fleet.next_batch(stream, samples_per_batch)
                 # The batch id is derived from the stream time: unique per stream, stable across
                 # retries, and never reused after a restart (time only moves forward).
                 batch_id = f"sim-{int(round(t_s[0] * 1000.0))}"
@@ -440,6 +565,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default="rest",
         help="rest: POST batches; ws: stream WebSocket frames (Arrow, or JSON with --format json)",
     )
+    parser.add_argument(
+        "--flight-controls",
+        action="store_true",
+        help="also fly a flight-controls unit (STMMAE) on every aircraft",
+    )
+    parser.add_argument(
+        "--faults",
+        choices=FAULT_MODES,
+        default="random",
+        help="surface faults injected into every second aircraft's flight controls (random)",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
         "--tail-prefix", default="FH", help="tails are PREFIX-001, PREFIX-002, ... (default FH)"
@@ -468,6 +604,8 @@ def run(args: argparse.Namespace) -> int:
             degrade_over_s=args.degrade_over_s,
             stop_event=stop_event,
             transport=args.transport,
+            flight_controls=args.flight_controls,
+            faults=args.faults,
         )
     except KeyboardInterrupt:
         stop_event.set()

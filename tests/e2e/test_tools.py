@@ -292,6 +292,8 @@ def test_simulate_registers_fleet_and_degradation_shows_in_fakf_health(
         seed=3,
         tail_prefix="SIM",
         log=lines.append,
+        flight_controls=True,
+        faults="paper",
     )
     assert summary.errors == 0, lines
     assert summary.aircraft == ["SIM-001", "SIM-002"]
@@ -300,11 +302,29 @@ def test_simulate_registers_fleet_and_degradation_shows_in_fakf_health(
         ("SIM-001", "ema-right"),
         ("SIM-002", "ema-left"),
         ("SIM-002", "ema-right"),
+        ("SIM-001", "flight-controls"),
+        ("SIM-002", "flight-controls"),
     ]
-    assert summary.samples_sent == 4 * 12_000
+    assert summary.samples_sent == 6 * 12_000
+
+    # Flight controls: SIM-002 flies the seed paper's fault sequence (left aileron stuck from
+    # 10 to 40 s, right aileron oscillating from 70 to 100 s), SIM-001 flies without faults.
+    for tail in ("SIM-001", "SIM-002"):
+        client.wait_applied(tail, "flight-controls", seq=24, timeout_s=120.0)
+    # (The false-alarm rate of the bank is the estimator's business, measured in
+    # docs/validation.md; here only the injection is checked.)
+    faulty = client.faults("SIM-002", "flight-controls")
+    detected = [
+        (e["detail"]["component"], e["detail"]["detected_s"] - faulty_t0)
+        for faulty_t0 in [_first_t(client, "SIM-002", "flight-controls")]
+        for e in faulty["events"]
+        if e["kind"] == "fault_detected"
+    ]
+    assert ("aileron_left" in [c for c, t in detected if 10.0 <= t < 40.0]), detected
+    assert ("aileron_right" in [c for c, t in detected if 70.0 <= t < 100.0]), detected
 
     t_last: dict[tuple[str, str], float] = {}
-    for tail, actuator_id in summary.actuators:
+    for tail, actuator_id in summary.actuators[:4]:
         actuator = client.get_actuator(tail, actuator_id)
         assert actuator["kind"] == "ema_voltage"
         assert actuator["channels"] == ["current", "voltage"]
@@ -325,7 +345,7 @@ def test_simulate_registers_fleet_and_degradation_shows_in_fakf_health(
     fleet = {a["tail"]: a for a in client.fleet_health(sort="status")["aircraft"]}
     assert fleet["SIM-001"]["status"] == "ok"
     assert fleet["SIM-002"]["status"] in ("watch", "alert")
-    assert len(fleet["SIM-002"]["actuators"]) == 2
+    assert len(fleet["SIM-002"]["actuators"]) == 3  # two EMAs and the flight controls
 
     # A second run, streaming over WebSocket, continues each stream after its last sample
     # instead of colliding with it.
@@ -346,6 +366,11 @@ def test_simulate_registers_fleet_and_degradation_shows_in_fakf_health(
     for (tail, actuator_id), t_before in t_last.items():
         health = client.wait_applied(tail, actuator_id, seq=26, timeout_s=120.0)
         assert health["t_last_s"] == pytest.approx(t_before + 10.0)
+
+
+def _first_t(client: FleetHealthClient, tail: str, actuator_id: str) -> float:
+    out = client.outputs(tail, actuator_id, estimator="stmmae")
+    return float(out["t_s"][0])
 
 
 # ------------------------------------------------------------------------------------------------
