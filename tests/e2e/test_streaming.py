@@ -261,7 +261,8 @@ def paused_server(tmp_path: Path) -> Any:
     url = f"sqlite:///{tmp_path / 'bp.db'}"
     upgrade(url)
     server = LiveServer(url, tmp_path / "server.log",
-                        {"FLEETHEALTH_PROCESSOR_ENABLED": "false", "FLEETHEALTH_WS_MAX_INFLIGHT": "5"})
+                        {"FLEETHEALTH_PROCESSOR_ENABLED": "false", "FLEETHEALTH_WS_MAX_INFLIGHT": "5",
+                         "FLEETHEALTH_SHUTDOWN_TIMEOUT_S": "1"})
     server.start()
     yield server
     server.stop()
