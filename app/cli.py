@@ -90,7 +90,8 @@ def _demo_feeder(url: str, key: str, stop: threading.Event) -> None:
     from app.tools.simulate import run_simulation
 
     try:
-        run_simulation(url, key, stop_event=stop)  # waits for /readyz itself
+        # Waits for /readyz itself. Every second aircraft's flight controls get surface faults.
+        run_simulation(url, key, stop_event=stop, flight_controls=True)
     except Exception as exc:  # the demo feeder must never take the server down
         print(f"demo simulator stopped: {exc}", file=sys.stderr)
 
