@@ -45,7 +45,7 @@ from estimators.kernels import stmmae_kernels as kern
 from estimators.models.small_uav import reference_model
 
 NAME = "stmmae"
-STATE_VERSION = 1
+STATE_VERSION = 2
 
 Variant = Literal["improved", "strong_tracking", "emmae"]
 Likelihood = Literal["euclidean", "gaussian"]

@@ -69,9 +69,12 @@ D_BELOW_T = 3  # start of the current run below the clearance probability while 
 D_DETECTED_T = 4
 D_SMOOTH = 5  # smoothed deflection estimate (rad)
 D_SMOOTH_SET = 6
-D_EP_SUM = 7  # sums of the smoothed deflection over the episode's samples above CFG_DETECT_P,
-D_EP_SUMSQ = 8  # from the start of the run that led to the detection until CFG_KIND_WINDOW_S
-D_EP_N = 9  # after the detection (then frozen: the fault kind is judged on that span)
+# precision-weighted sums of the (clipped) deflection estimate over the episode's samples above
+# CFG_DETECT_P, from the start of the run that led to the detection until CFG_KIND_WINDOW_S after
+# the detection (then frozen: the fault kind is judged on that span); weight 1 / P_dd
+D_EP_SUM = 7  # sum of w d
+D_EP_SUMSQ = 8  # sum of w d^2
+D_EP_N = 9  # sum of w
 D_LEN = 10
 
 # health-window accumulators
@@ -517,23 +520,30 @@ def _bayes(probs: FloatArray, ll: FloatArray, floor: float) -> None:
 
 
 @njit(cache=True, error_model="numpy")
-def _episode_add(dec: FloatArray, h: int, value: float) -> None:
-    dec[h, D_EP_SUM] += value
-    dec[h, D_EP_SUMSQ] += value * value
-    dec[h, D_EP_N] += 1.0
+def _episode_add(dec: FloatArray, h: int, value: float, var: float) -> None:
+    """Add one deflection estimate ``value`` of posterior variance ``var`` with weight
+    ``1 / var`` (samples where the fading factor has just inflated the deflection's covariance,
+    and the estimate jumps, count little)."""
+    if not var > 0.0 or not math.isfinite(var):
+        return
+    w = 1.0 / var
+    dec[h, D_EP_SUM] += w * value
+    dec[h, D_EP_SUMSQ] += w * value * value
+    dec[h, D_EP_N] += w
 
 
 @njit(cache=True, error_model="numpy")
 def episode_mean(dec: FloatArray, h: int) -> float:
-    """Mean smoothed deflection over the episode's span (NaN if empty)."""
+    """Precision-weighted mean deflection estimate over the episode's span (NaN if empty)."""
     n = dec[h, D_EP_N]
     return dec[h, D_EP_SUM] / n if n > 0.0 else np.nan
 
 
 @njit(cache=True, error_model="numpy")
 def episode_swing(dec: FloatArray, h: int) -> float:
-    """Twice the standard deviation of the smoothed deflection over the episode's span (0 if
-    empty): the peak-to-peak swing of a square wave, 0.71 times that of a sine."""
+    """Twice the precision-weighted standard deviation of the deflection estimate over the
+    episode's span (0 if empty): the peak-to-peak swing of a square wave, 0.71 times that of a
+    sine."""
     n = dec[h, D_EP_N]
     if n <= 0.0:
         return 0.0
@@ -571,6 +581,7 @@ def _decide(
     dt: float,
     prob: float,
     defl: float,
+    defl_var: float,
     cmd: float,
     a_smooth: float,
 ) -> int:
@@ -598,7 +609,7 @@ def _decide(
                 dec[h, D_EP_N] = 0.0
                 dec[h, D_EP_SUM] = 0.0
                 dec[h, D_EP_SUMSQ] = 0.0
-            _episode_add(dec, h, dec[h, D_SMOOTH])
+            _episode_add(dec, h, defl, defl_var)
             if t - dec[h, D_ABOVE_T] >= cfg[CFG_HOLD_S]:
                 dec[h, D_ACTIVE] = 1.0
                 dec[h, D_DETECTED_T] = t
@@ -608,7 +619,7 @@ def _decide(
             dec[h, D_ABOVE_T] = np.nan
         return 0
     if holds and t - dec[h, D_DETECTED_T] <= cfg[CFG_KIND_WINDOW_S]:
-        _episode_add(dec, h, dec[h, D_SMOOTH])
+        _episode_add(dec, h, defl, defl_var)
     if prob < cfg[CFG_CLEAR_P]:
         if math.isnan(dec[h, D_BELOW_T]):
             dec[h, D_BELOW_T] = t
@@ -837,7 +848,7 @@ def _bank_kernel(
             samples[row, k] = defl
             row += 1
             cmd = u_last[surface_inputs[h]]
-            code = _decide(cfg, dec, h, tk, dt, probs[h + 1], defl, cmd, a_smooth)
+            code = _decide(cfg, dec, h, tk, dt, probs[h + 1], defl, ps[h + 1, n, n], cmd, a_smooth)
             if code != 0:
                 events = _write_event(events, n_ev, tk, float(code), dec, h)
                 n_ev += 1

@@ -14,6 +14,7 @@ from filterpy.stats import logpdf
 
 from estimators import stmmae
 from estimators.base import Batch, ConfigError, EstimatorError, OutOfOrderError, StateVersionError
+from estimators.kernels import stmmae_kernels as kern
 from estimators.models.small_uav import SURFACES, reference_model
 from estimators.simulators.uav_closed_loop import SurfaceFault, simulate_flight
 
@@ -337,7 +338,9 @@ def test_state_errors() -> None:
     config = stmmae.parse_config({})
     blob = stmmae.dump_state(stmmae.initial_state(config))
     with pytest.raises(StateVersionError, match="99"):
-        stmmae.load_state(blob.replace(b'"version":1', b'"version":99'))
+        current = f'"version":{stmmae.STATE_VERSION}'.encode()
+        assert current in blob
+        stmmae.load_state(blob.replace(current, b'"version":99'))
     with pytest.raises(EstimatorError):
         stmmae.load_state(b"not json")
     with pytest.raises(EstimatorError):
@@ -532,3 +535,22 @@ def test_registry_and_warm_up() -> None:
     config = stmmae.parse_config(kind.default_estimators["stmmae"])
     assert set(stmmae.required_channels(config)) <= set(kind.channels)
     stmmae.warm_up()
+
+
+def test_episode_statistics_are_precision_weighted() -> None:
+    """A deflection estimate whose posterior variance was just inflated (a fading spike) barely
+    moves the episode's mean and swing; equal variances give the plain mean and 2 std."""
+    dec = np.zeros((1, kern.D_LEN))
+    for value in (0.10, 0.11, 0.09, 0.10):
+        kern._episode_add(dec, 0, value, 1e-4)
+    kern._episode_add(dec, 0, 0.5, 1e-1)  # a spike of 23 deg with 1000 times the variance
+    assert abs(kern.episode_mean(dec, 0) - 0.1) < 1e-3
+    # 0.8 deg from the four close values alone; the spike counted like them would give 19 deg
+    assert kern.episode_swing(dec, 0) < np.radians(1.5)
+    plain = np.zeros((1, kern.D_LEN))
+    for value in (0.0, 0.2):
+        kern._episode_add(plain, 0, value, 1e-4)
+    assert kern.episode_mean(plain, 0) == pytest.approx(0.1)
+    assert kern.episode_swing(plain, 0) == pytest.approx(0.2)
+    kern._episode_add(plain, 0, 1.0, np.inf)  # not finite: ignored
+    assert kern.episode_mean(plain, 0) == pytest.approx(0.1)
