@@ -9,9 +9,10 @@ from dataclasses import dataclass, field
 from types import ModuleType
 from typing import Any
 
-from estimators import fakf, stmmae
+from estimators import darr_fekf, fakf, stmmae
 
 ESTIMATORS: dict[str, ModuleType] = {
+    darr_fekf.NAME: darr_fekf,
     fakf.NAME: fakf,
     stmmae.NAME: stmmae,
 }
@@ -35,6 +36,13 @@ class ActuatorKind:
 
 
 ACTUATOR_KINDS: dict[str, ActuatorKind] = {
+    "sha_ema": ActuatorKind(
+        name="sha_ema",
+        description="SHA/EMA redundant surface (w rad/s, f_c N, v m/s, f_e N, f_h N, v_p m/s, "
+        "p_l Pa; inputs x_v m, u_a V) -> DARR residuals, fault isolation and FEKF",
+        channels=("w", "f_c", "v", "f_e", "f_h", "v_p", "p_l", "x_v", "u_a"),
+        default_estimators={"darr_fekf": {}},
+    ),
     "ema_voltage": ActuatorKind(
         name="ema_voltage",
         description="Electro-mechanical actuator, motor voltage monitoring (current, voltage) -> FAKF",
