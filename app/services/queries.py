@@ -164,14 +164,25 @@ def _event(r: EstimatorEventRow) -> dict[str, Any]:
 
 
 def _open_faults(rows: list[EstimatorEventRow]) -> list[EstimatorEventRow]:
-    """Detections with no later clearance of the same component by the same estimator."""
+    """Detections with no later clearance of the same component by the same estimator.
+
+    A detection marked ``"update": true`` revises the estimator's open detections (e.g. more
+    residuals joined) and replaces them; a clearance naming no open component clears all of
+    that estimator's.
+    """
     open_: dict[tuple[str, str], EstimatorEventRow] = {}
     for r in rows:
         key = (r.estimator, str(r.detail.get("component")))
         if r.kind == "fault_detected":
+            if r.detail.get("update"):
+                for k in [k for k in open_ if k[0] == r.estimator]:
+                    del open_[k]
             open_[key] = r
+        elif key in open_:
+            del open_[key]
         else:
-            open_.pop(key, None)
+            for k in [k for k in open_ if k[0] == r.estimator]:
+                del open_[k]
     return sorted(open_.values(), key=lambda r: (r.t_s, r.id))
 
 
