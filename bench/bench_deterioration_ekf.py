@@ -1,0 +1,213 @@
+"""Deterioration EKF speed: ns per sample against filterpy's ExtendedKalmanFilter on the same
+model, and the time of a 1,000-trajectory RUL prognosis under several regimes.
+
+Prints figures measured side by side in one run; asserts nothing.
+Run: ``.venv/bin/python bench/bench_deterioration_ekf.py``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+from filterpy.kalman import ExtendedKalmanFilter
+from scipy.linalg import expm
+
+from estimators import deterioration_ekf as de
+from estimators import rul
+from estimators.base import Batch
+from estimators.kernels import dekf_kernels as kern
+from estimators.simulators.friction_drive import FrictionDriveParams, simulate_friction_drive
+
+PROGNOSIS_Q = [0.0, 0.0, 0.0, 1e-13]
+
+
+def best_of(fn: Callable[[], Any], repeats: int) -> float:
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def filterpy_seconds_per_sample(
+    t: np.ndarray, ch: dict[str, np.ndarray], n: int, *, exact: bool
+) -> float:
+    """filterpy's EKF on the same model and Jacobian (seed eq. 19). ``exact``: ``Phi = expm(F
+    dt)`` and the local-linearization state step from scipy's expm of the augmented matrix (the
+    estimator's discretization); otherwise Euler, ``Phi = I + F dt``, ``x + f(x) dt`` (filterpy's
+    cheapest use, not the same discretization)."""
+    p = FrictionDriveParams()
+    config = de.DekfConfig()
+    h = np.eye(4)[:2]
+    aug = np.zeros((8, 8))
+    aug[:4, 4:] = np.eye(4)
+
+    def hx(x: np.ndarray) -> np.ndarray:
+        return h @ x
+
+    def run() -> None:
+        ekf = ExtendedKalmanFilter(dim_x=4, dim_z=2)
+        ekf.x = np.array([[ch["motor_speed"][0]], [ch["wheel_speed"][0]], [10.0], [0.01]])
+        ekf.P = np.diag(config.p0_diag)
+        ekf.Q = np.diag(config.q_diag)
+        ekf.R = np.diag(config.r_diag)
+        for k in range(1, n):
+            w1, w2, al, m = ekf.x[:, 0]
+            dv = p.r1_m * w1 - p.r2_m * w2
+            u = ch["current"][k - 1]
+            f = np.array(
+                [
+                    (-al * p.r1_m * dv - p.b1_nm_s * w1 + p.km_nm_a * u) / p.j1_kg_m2,
+                    (al * p.r2_m * dv - p.b2_nm_s * w2) / p.j2_kg_m2,
+                    -m * dv * dv * al,
+                    0.0,
+                ]
+            )
+            jac = np.array(
+                [
+                    [-(al * p.r1_m**2 + p.b1_nm_s) / p.j1_kg_m2, al * p.r1_m * p.r2_m / p.j1_kg_m2,
+                     -p.r1_m * dv / p.j1_kg_m2, 0.0],
+                    [al * p.r1_m * p.r2_m / p.j2_kg_m2, -(al * p.r2_m**2 + p.b2_nm_s) / p.j2_kg_m2,
+                     p.r2_m * dv / p.j2_kg_m2, 0.0],
+                    [-2 * al * m * p.r1_m * dv, 2 * al * m * p.r2_m * dv, -m * dv * dv,
+                     -al * dv * dv],
+                    [0.0, 0.0, 0.0, 0.0],
+                ]
+            )  # fmt: skip
+            dt = t[k] - t[k - 1]
+            if exact:
+                aug[:4, :4] = jac
+                gamma = expm(aug * dt)[:4, 4:]
+                ekf.F = expm(jac * dt)
+                ekf.x = ekf.x + (gamma @ f)[:, None]
+            else:
+                ekf.F = np.eye(4) + jac * dt
+                ekf.x = ekf.x + (f * dt)[:, None]
+            ekf.P = ekf.F @ ekf.P @ ekf.F.T + ekf.Q
+            ekf.update(np.array([[ch["motor_speed"][k]], [ch["wheel_speed"][k]]]), lambda _x: h, hx)
+
+    return best_of(run, 5) / (n - 1)
+
+
+def rul_cases() -> list[tuple[str, np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray], float]]:
+    """(label, x, P, load segments, alpha0) taken from filter runs on the simulator."""
+    cases = []
+    for label, m, extra, load in (
+        ("seed scenario at t = 15 s (fast wear, ~75 periods)", 0.01, {}, rul.SquareWaveLoad()),
+        ("m = 0.001 (slow wear, cycle jumps)", 0.001, {}, rul.SquareWaveLoad()),
+        ("constant 20 A (the seed's assumption)", 0.01, {}, rul.ConstantLoad(20.0)),
+        (
+            "seed Q: wide spread of m",
+            0.01,
+            {"q_diag": list(de.DekfConfig().q_diag)},
+            rul.SquareWaveLoad(),
+        ),
+    ):
+        t, ch, _ = simulate_friction_drive(15.0, 1000.0, m=m, seed=3)
+        config = de.parse_config({"q_diag": PROGNOSIS_Q, "rul_every_s": None, **extra})
+        state, _ = de.step(config, de.initial_state(config), Batch(t, ch))
+        segments = rul.load_segments(load, float(t[-1]))
+        assert segments is not None
+        cases.append((label, state.x, state.P, segments, 10.0))
+    # observed load: 8 s of 40 ms bins of a measured current (noise 0.05 A), merged at 0.5 A
+    t, ch, _ = simulate_friction_drive(15.0, 1000.0, seed=3, current_noise_a=0.05)
+    load_raw = {"kind": "observed", "bin_samples": 40, "bins": 200, "merge_tolerance_a": 0.5}
+    config = de.parse_config(
+        {"q_diag": PROGNOSIS_Q, "rul_every_s": "every_batch", "rul_load": load_raw,
+         "current_var": 0.05**2}
+    )  # fmt: skip
+    state, _ = de.step(config, de.initial_state(config), Batch(t, ch))
+    row = de._end_snapshot(state.vector, float(t[-1]), config.observed_bins)
+    observed = de._observed_profile(row, config.observed_bins)
+    segments = rul.load_segments(config.rul_load, float(t[-1]), observed)
+    assert segments is not None
+    cases.append(
+        (f"observed load ({len(segments[0])} segments per 8 s)", state.x, state.P, segments, 10.0)
+    )
+    return cases
+
+
+def main() -> None:
+    de.warm_up()
+    n_long = 1_000_000
+    t, ch, _ = simulate_friction_drive(n_long / 1000.0, 1000.0, m=0.0005, seed=1)
+    rows: list[tuple[str, str]] = []
+    for label, extra in (
+        ("seed Q, F44 = 0", {}),
+        ("prognosis tuning", {"q_diag": PROGNOSIS_Q}),
+        ("seed Q, F44 = -100", {"f44": -100.0}),
+        ("seed Q, expm_tol = 1e-12", {"expm_tol": 1e-12}),
+    ):
+        config = de.parse_config({"rul_every_s": None, **extra})
+        state0 = de.initial_state(config)
+        batch = Batch(t, ch)
+        s_step = best_of(
+            lambda config=config, state0=state0, batch=batch: de.step(config, state0, batch), 5
+        )
+
+        def kernel_only(config: de.DekfConfig = config, state0: de.DekfState = state0) -> None:
+            kern.ekf_batch(
+                config.kernel_vector, state0.vector.copy(), t, ch["current"],
+                ch["motor_speed"], ch["wheel_speed"],
+            )  # fmt: skip
+
+        s_kernel = best_of(kernel_only, 5)
+        rows.append(
+            (f"EKF step(), {label}, 1e6-sample batch", f"{s_step / n_long * 1e9:8.1f} ns/sample")
+        )
+        rows.append(("  compiled kernel alone", f"{s_kernel / n_long * 1e9:8.1f} ns/sample"))
+        if label == "seed Q, F44 = 0":
+            per_sample = s_step / n_long
+    n_fp = 1000
+    for exact, label in ((True, "scipy expm (same discretization)"), (False, "Euler")):
+        s_fp = filterpy_seconds_per_sample(t, ch, n_fp, exact=exact)
+        rows.append(
+            (
+                f"filterpy ExtendedKalmanFilter, {label}, {n_fp} samples",
+                f"{s_fp * 1e9:8.0f} ns/sample",
+            )
+        )
+        rows.append(("  ratio to step() (seed Q, F44 = 0)", f"{s_fp / per_sample:8.0f} x"))
+
+    config = de.parse_config({"rul_every_s": None})
+    state0 = de.initial_state(config)
+    b10k = Batch(t[:10_000], {k: v[:10_000] for k, v in ch.items()})
+    b1 = Batch(t[:1], {k: v[:1] for k, v in ch.items()})
+    rows.append(
+        (
+            "step() on a 10,000-sample batch",
+            f"{best_of(lambda: de.step(config, state0, b10k), 100) * 1e6:8.1f} us",
+        )
+    )
+    rows.append(
+        (
+            "step() on a 1-sample batch",
+            f"{best_of(lambda: de.step(config, state0, b1), 1000) * 1e6:8.1f} us",
+        )
+    )
+
+    plant = FrictionDriveParams().as_array()
+    settings = rul.PrognosisSettings(n_trajectories=1000)
+    for label, x, cov, segments, alpha0 in rul_cases():
+        res = rul.prognose(plant, alpha0, x, cov, 15.0, segments, settings)
+        s_rul = best_of(
+            lambda x=x, cov=cov, segments=segments, alpha0=alpha0: rul.prognose(
+                plant, alpha0, x, cov, 15.0, segments, settings
+            ),
+            5,
+        )
+        q50 = "-" if res.q50_s is None else f"{res.q50_s:.4g} s"
+        rows.append((f"RUL, 1,000 trajectories: {label}", f"{s_rul * 1e3:8.1f} ms  (q50 {q50})"))
+    width = max(len(r[0]) for r in rows)
+    print(f"{'measure':<{width}}  value")
+    print("-" * (width + 30))
+    for name, value in rows:
+        print(f"{name:<{width}}  {value}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,1261 @@
+"""Compiled loops of the deterioration EKF and of its remaining-useful-life propagation.
+
+``estimators.deterioration_ekf`` packs the configuration and the state into flat float64 vectors
+and calls :func:`ekf_batch` once per batch; ``estimators.rul`` calls :func:`rul_times` once per
+prognosis. Everything that runs per sample or per trajectory lives here, compiled by numba.
+
+Model (seed eqs. 1-11), state ``x = [w1, w2, alpha, m]``, input ``u = I``::
+
+    dv      = r1 w1 - r2 w2                         (relative tangential speed)
+    dw1/dt  = (-alpha r1 dv - B1 w1 + Km u) / J1
+    dw2/dt  = ( alpha r2 dv - B2 w2) / J2
+    dalpha/dt = -m dv^2 alpha                        (eq. 7, sliding factor p = dv^2)
+    dm/dt   = 0                                      (eq. 11)
+
+Flat layouts (indices are the module constants below):
+
+* configuration vector ``cfg`` (``CFG_*``), built by ``estimators.deterioration_ekf``;
+* state vector ``st`` (``ST_*``): filter state and covariance (upper triangle), the held current,
+  the health-window accumulators, the Dn level, the next prognosis time and the ring of binned
+  applied current used by the "observed" load assumption (``2 * bins`` values at ``ST_RING``).
+  Counters are stored as floats (exact below 2**53).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+# ----------------------------------------------------------------------------- layouts
+CFG_R1 = 0
+CFG_R2 = 1
+CFG_B1 = 2
+CFG_B2 = 3
+CFG_J1 = 4
+CFG_J2 = 5
+CFG_KM = 6
+CFG_RV = 7  # 2: measurement noise variances of w1, w2
+CFG_Q = 9  # 4: per-sample process noise variances (diagonal)
+CFG_P0 = 13  # 4: initial variances (diagonal)
+CFG_W0 = 17  # 2: initial speeds (NaN: the first measurement)
+CFG_ALPHA0 = 19
+CFG_M0 = 20
+CFG_F44 = 21
+CFG_BOUND_C = 22
+CFG_HEALTH_WINDOW = 23
+CFG_EXPM_TOL = 24
+CFG_DN_WATCH = 25
+CFG_DN_ALERT = 26
+CFG_DN_HYST = 27
+CFG_RUL_EVERY = 28  # NaN: no scheduled prognosis
+CFG_OBS_BIN_SAMPLES = 29  # 0: no observed-load ring
+CFG_OBS_BINS = 30
+CFG_NIS_BOUNDS = 31  # 4: per-sample central 95 % chi-square bounds, 1 dof (lo, hi), 2 dof (lo, hi)
+CFG_PROJECT = 35  # 1.0: alpha-hat clipped at 0, wear rate max(m-hat, 0) in the prediction
+CFG_CURRENT_VAR = 36  # variance of the measured current (A^2), propagated as process noise
+CFG_INV_J1 = 37  # 1 / J1
+CFG_INV_J2 = 38  # 1 / J2
+CFG_LEN = 39
+
+ST_INIT = 0
+ST_T_LAST = 1
+ST_U_HELD = 2
+ST_N_SEEN = 3
+ST_X = 4  # 4
+ST_P = 8  # 10: p00 p01 p02 p03 p11 p12 p13 p22 p23 p33
+ST_DN_LEVEL = 18
+ST_T_NEXT_RUL = 19
+ST_W_COUNT = 20
+ST_W_T0 = 21
+ST_W_DN0 = 22
+ST_W_N_UPD = 23
+ST_W_SUM_NIS = 24
+ST_W_SUM_DOF = 25
+ST_W_N_NIS_OUT = 26
+ST_W_N_E_OUT = 27
+ST_W_N_E = 28
+ST_W_CH = 29  # 2 x 5: n, sum nu, sum nu^2, sum nu_k nu_{k-1}, lag pairs
+CH_N = 0
+CH_SUM = 1
+CH_SUM2 = 2
+CH_LAG = 3
+CH_N_LAG = 4
+CH_LEN = 5
+ST_NU_PREV = 39  # 2: last normalized innovations (NaN when missing)
+ST_LAST_CONSISTENT = 41  # NaN before the first window
+ST_RUL_LEVEL = 42
+ST_RUL_Q05 = 43
+ST_OB_SUM_UDT = 44
+ST_OB_SUM_DT = 45
+ST_OB_COUNT = 46
+ST_OB_HEAD = 47
+ST_OB_FILLED = 48
+ST_RING = 49  # bins currents, then bins durations
+ST_BASE_LEN = 49
+
+# health-window rows
+WIN_T0 = 0
+WIN_T1 = 1
+WIN_N = 2
+WIN_N_UPD = 3
+WIN_SUM_NIS = 4
+WIN_SUM_DOF = 5
+WIN_N_NIS_OUT = 6
+WIN_N_E_OUT = 7
+WIN_N_E = 8
+WIN_CH = 9  # 2 x CH_LEN
+WIN_DN0 = 19
+WIN_X = 20  # 4
+WIN_SIGMA = 24  # 4
+WIN_LEN = 28
+
+# Dn level change rows
+EV_T = 0
+EV_FROM = 1
+EV_TO = 2
+EV_DN = 3
+EV_DN_LO = 4
+EV_DN_HI = 5
+EV_LEN = 6
+
+# prognosis snapshot rows: time, x (4), P upper triangle (10), filled bins, ring (2 x bins)
+RS_T = 0
+RS_X = 1
+RS_P = 5
+RS_FILLED = 15
+RS_RING = 16
+RS_BASE_LEN = 16
+
+# per-sample output rows
+OUT_W1 = 0
+OUT_W2 = 1
+OUT_ALPHA = 2
+OUT_M = 3
+OUT_SIG = 4  # 4: c sqrt(P_ii)
+OUT_DN = 8
+OUT_DN_LO = 9
+OUT_DN_HI = 10
+OUT_E = 11  # 2 innovations
+OUT_E_BOUND = 13  # 2: c sqrt(S_jj)
+OUT_NIS = 15
+OUT_LEN = 16
+
+# fused multiply-add contraction only (no reassociation, no assumptions on NaN or infinity):
+# the hot loops are chains of products and sums
+FMA = {"contract"}
+THETA_MAX = 0.5  # largest ||G dt||_1 before scaling and squaring
+MAX_ORDER = 24
+# 1 / j for j = 0 .. MAX_ORDER + 2 (index 0 unused): the Horner steps multiply instead of divide
+RECIP = np.array([0.0] + [1.0 / j for j in range(1, MAX_ORDER + 3)])
+# cycle jumps of the prognosis: only where ln(alpha) changes by at most this per period (the
+# modified equation is then accurate to O(delta^2) relative), over at least this many periods,
+# and stopping this many periods before the threshold
+JUMP_MAX_DELTA = 0.01
+JUMP_MIN_PERIODS = 16.0
+JUMP_MARGIN_PERIODS = 8.0
+MAX_SUB = 256  # sub-segments per load segment in the prognosis
+
+
+# ----------------------------------------------------------------------------- model
+@njit(cache=True, error_model="numpy")
+def taylor_order(theta: float, tol: float) -> int:
+    """Smallest N >= 2 with theta^(N+1) / (N+2)! <= tol (remainder bound of phi1 to order N)."""
+    term = theta * theta * theta / 24.0  # N = 2: theta^3 / 4!
+    order = 2
+    while term > tol and order < MAX_ORDER:
+        order += 1
+        term *= theta * RECIP[order + 2]
+    return order
+
+
+@njit(cache=True, error_model="numpy", fastmath=FMA)
+def discretize(
+    cfg: FloatArray, w1: float, w2: float, al: float, m: float, u: float, dt: float
+) -> tuple[
+    float, float, float, float, float, float, float, float, float,
+    float, float, float, float, float, float, float, float, float, float,
+]:  # fmt: skip
+    """Local-linearization step of the model from the posterior ``[w1, w2, al, m]``.
+
+    With ``F`` the Jacobian (seed eq. 19) at the posterior, ``G`` its upper-left 3x3 block,
+    ``g = [0, 0, F34]`` and ``F44`` the configured value:
+
+        Phi   = expm(F dt) = [[E, c4], [0, exp(F44 dt)]],  E = expm(G dt)
+        Gamma = int_0^dt expm(G s) ds = dt phi1(G dt)
+        dx    = Gamma (f(x) + B u)              (state prediction of w1, w2, alpha; m is held)
+        c4    = int_0^dt expm(G (dt - s)) g exp(F44 s) ds
+        gb    = Gamma B                         (how a current error over the step moves x)
+
+    ``phi1(X) = sum_j X^j / (j+1)!`` is evaluated by Horner's rule to the order whose remainder
+    bound is below ``tol`` (``taylor_order``), after halving ``dt`` s times if ``||G dt||_1``
+    exceeds ``THETA_MAX``; ``E`` and ``Gamma`` are then doubled back (``Gamma(2h) = (I + E(h))
+    Gamma(h)``, ``E(2h) = E(h)^2``).
+
+    Returns:
+        (E00, E01, E02, E10, E11, E12, E20, E21, E22, c40, c41, c42, e44, dx0, dx1, dx2, gb0,
+        gb1, gb2).
+    """
+    r1 = cfg[CFG_R1]
+    r2 = cfg[CFG_R2]
+    ij1 = cfg[CFG_INV_J1]
+    ij2 = cfg[CFG_INV_J2]
+    f44 = cfg[CFG_F44]
+    tol = cfg[CFG_EXPM_TOL]
+    dv = r1 * w1 - r2 * w2
+    # Jacobian, seed eq. 19
+    g00 = -(al * r1 * r1 + cfg[CFG_B1]) * ij1
+    g01 = al * r1 * r2 * ij1
+    g02 = -r1 * dv * ij1
+    g10 = al * r1 * r2 * ij2
+    g11 = -(al * r2 * r2 + cfg[CFG_B2]) * ij2
+    g12 = r2 * dv * ij2
+    g20 = -2.0 * al * m * r1 * dv
+    g21 = 2.0 * al * m * r2 * dv
+    g22 = -m * dv * dv
+    f34 = -al * dv * dv
+    # drift f(x) + B u (m has none)
+    v0 = (-al * r1 * dv - cfg[CFG_B1] * w1 + cfg[CFG_KM] * u) * ij1
+    v1 = (al * r2 * dv - cfg[CFG_B2] * w2) * ij2
+    v2 = g22 * al
+    # The order is chosen from the 1-norm of the balanced matrix D^-1 G D, D = diag(1, 1, b),
+    # b^2 = (|g20| + |g21|) / (|g02| + |g12|): the truncated series commutes with the
+    # similarity, so its remainder is bounded entry-wise relative to the balanced scales and the
+    # large alpha column (units of speed per unit alpha) does not inflate the order.
+    col_a = abs(g02) + abs(g12)
+    row_a = abs(g20) + abs(g21)
+    bal = math.sqrt(row_a * col_a)
+    norm = max(abs(g00) + abs(g10), abs(g01) + abs(g11), abs(g22)) + bal
+    theta = norm * dt
+    s = 0
+    h = dt
+    if theta > THETA_MAX:
+        s = int(math.ceil(math.log2(theta / THETA_MAX)))
+        h = dt / 2.0**s
+        theta = norm * h
+    order = taylor_order(theta, tol)
+    x00 = g00 * h
+    x01 = g01 * h
+    x02 = g02 * h
+    x10 = g10 * h
+    x11 = g11 * h
+    x12 = g12 * h
+    x20 = g20 * h
+    x21 = g21 * h
+    x22 = g22 * h
+    # Horner: Y = I + X / (N+1), then Y = I + X Y / (j+1) for j = N-1 .. 1
+    c = RECIP[order + 1]
+    y00 = 1.0 + x00 * c
+    y01 = x01 * c
+    y02 = x02 * c
+    y10 = x10 * c
+    y11 = 1.0 + x11 * c
+    y12 = x12 * c
+    y20 = x20 * c
+    y21 = x21 * c
+    y22 = 1.0 + x22 * c
+    for j in range(order - 1, 0, -1):
+        c = RECIP[j + 1]
+        n00 = 1.0 + (x00 * y00 + x01 * y10 + x02 * y20) * c
+        n01 = (x00 * y01 + x01 * y11 + x02 * y21) * c
+        n02 = (x00 * y02 + x01 * y12 + x02 * y22) * c
+        n10 = (x10 * y00 + x11 * y10 + x12 * y20) * c
+        n11 = 1.0 + (x10 * y01 + x11 * y11 + x12 * y21) * c
+        n12 = (x10 * y02 + x11 * y12 + x12 * y22) * c
+        n20 = (x20 * y00 + x21 * y10 + x22 * y20) * c
+        n21 = (x20 * y01 + x21 * y11 + x22 * y21) * c
+        n22 = 1.0 + (x20 * y02 + x21 * y12 + x22 * y22) * c
+        y00, y01, y02, y10, y11, y12, y20, y21, y22 = n00, n01, n02, n10, n11, n12, n20, n21, n22
+    # E = I + X Y, Gamma = h Y
+    e00 = 1.0 + x00 * y00 + x01 * y10 + x02 * y20
+    e01 = x00 * y01 + x01 * y11 + x02 * y21
+    e02 = x00 * y02 + x01 * y12 + x02 * y22
+    e10 = x10 * y00 + x11 * y10 + x12 * y20
+    e11 = 1.0 + x10 * y01 + x11 * y11 + x12 * y21
+    e12 = x10 * y02 + x11 * y12 + x12 * y22
+    e20 = x20 * y00 + x21 * y10 + x22 * y20
+    e21 = x20 * y01 + x21 * y11 + x22 * y21
+    e22 = 1.0 + x20 * y02 + x21 * y12 + x22 * y22
+    q00 = h * y00
+    q01 = h * y01
+    q02 = h * y02
+    q10 = h * y10
+    q11 = h * y11
+    q12 = h * y12
+    q20 = h * y20
+    q21 = h * y21
+    q22 = h * y22
+    # column 4 of Phi (rows 0..2) for the small step h
+    if f44 == 0.0:
+        e44 = 1.0
+        k0 = k1 = k2 = 0.0  # filled from Gamma after the doubling
+    else:
+        e44 = math.exp(f44 * h)
+        # c4(h) = exp(F44 h) h phi1((G - F44 I) h) g, by Horner on the vector g = [0, 0, F34]
+        z00 = x00 - f44 * h
+        z11 = x11 - f44 * h
+        z22 = x22 - f44 * h
+        norm_z = max(
+            abs(z00) + abs(x10) + abs(x20),
+            abs(x01) + abs(z11) + abs(x21),
+            abs(x02) + abs(x12) + abs(z22),
+        )
+        order_z = taylor_order(norm_z, tol)
+        c = RECIP[order_z + 1]
+        k0 = x02 * f34 * c
+        k1 = x12 * f34 * c
+        k2 = f34 + z22 * f34 * c
+        for j in range(order_z - 1, 0, -1):
+            c = RECIP[j + 1]
+            n0 = (z00 * k0 + x01 * k1 + x02 * k2) * c
+            n1 = (x10 * k0 + z11 * k1 + x12 * k2) * c
+            n2 = f34 + (x20 * k0 + x21 * k1 + z22 * k2) * c
+            k0, k1, k2 = n0, n1, n2
+        k0 *= e44 * h
+        k1 *= e44 * h
+        k2 *= e44 * h
+    for _ in range(s):
+        if f44 != 0.0:
+            n0 = e00 * k0 + e01 * k1 + e02 * k2 + k0 * e44
+            n1 = e10 * k0 + e11 * k1 + e12 * k2 + k1 * e44
+            n2 = e20 * k0 + e21 * k1 + e22 * k2 + k2 * e44
+            k0, k1, k2 = n0, n1, n2
+            e44 = e44 * e44
+        # Gamma <- Gamma + E Gamma
+        n00 = q00 + e00 * q00 + e01 * q10 + e02 * q20
+        n01 = q01 + e00 * q01 + e01 * q11 + e02 * q21
+        n02 = q02 + e00 * q02 + e01 * q12 + e02 * q22
+        n10 = q10 + e10 * q00 + e11 * q10 + e12 * q20
+        n11 = q11 + e10 * q01 + e11 * q11 + e12 * q21
+        n12 = q12 + e10 * q02 + e11 * q12 + e12 * q22
+        n20 = q20 + e20 * q00 + e21 * q10 + e22 * q20
+        n21 = q21 + e20 * q01 + e21 * q11 + e22 * q21
+        n22 = q22 + e20 * q02 + e21 * q12 + e22 * q22
+        q00, q01, q02, q10, q11, q12, q20, q21, q22 = n00, n01, n02, n10, n11, n12, n20, n21, n22
+        # E <- E E
+        n00 = e00 * e00 + e01 * e10 + e02 * e20
+        n01 = e00 * e01 + e01 * e11 + e02 * e21
+        n02 = e00 * e02 + e01 * e12 + e02 * e22
+        n10 = e10 * e00 + e11 * e10 + e12 * e20
+        n11 = e10 * e01 + e11 * e11 + e12 * e21
+        n12 = e10 * e02 + e11 * e12 + e12 * e22
+        n20 = e20 * e00 + e21 * e10 + e22 * e20
+        n21 = e20 * e01 + e21 * e11 + e22 * e21
+        n22 = e20 * e02 + e21 * e12 + e22 * e22
+        e00, e01, e02, e10, e11, e12, e20, e21, e22 = n00, n01, n02, n10, n11, n12, n20, n21, n22
+    if f44 == 0.0:
+        k0 = q02 * f34
+        k1 = q12 * f34
+        k2 = q22 * f34
+    dx0 = q00 * v0 + q01 * v1 + q02 * v2
+    dx1 = q10 * v0 + q11 * v1 + q12 * v2
+    dx2 = q20 * v0 + q21 * v1 + q22 * v2
+    kb = cfg[CFG_KM] * ij1
+    return (
+        e00, e01, e02, e10, e11, e12, e20, e21, e22, k0, k1, k2, e44, dx0, dx1, dx2,
+        q00 * kb, q10 * kb, q20 * kb,
+    )  # fmt: skip
+
+
+# ----------------------------------------------------------------------------- filter
+@njit(cache=True, error_model="numpy")
+def _grow(rows: FloatArray, used: int) -> FloatArray:
+    """A copy of ``rows`` with twice the capacity (first ``used`` rows kept)."""
+    bigger = np.empty((2 * rows.shape[0] + 4, rows.shape[1]))
+    bigger[:used] = rows[:used]
+    return bigger
+
+
+@njit(cache=True, error_model="numpy")
+def _dn_target(dn: float, watch: float, alert: float) -> int:
+    if dn >= alert:
+        return 2
+    if dn >= watch:
+        return 1
+    return 0
+
+
+def ekf_batch(
+    cfg: FloatArray,
+    st: FloatArray,
+    t: FloatArray,
+    current: FloatArray,
+    w1_meas: FloatArray,
+    w2_meas: FloatArray,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, int]:
+    """Run the EKF over one batch, updating ``st`` in place.
+
+    Returns:
+        (out, windows, events, snapshots, status): ``out`` has ``OUT_LEN`` rows of per-sample
+        outputs; ``windows`` / ``events`` / ``snapshots`` are row arrays (``WIN_LEN`` /
+        ``EV_LEN`` / ``RS_BASE_LEN + 2 bins`` columns) of completed health windows, Dn level
+        changes and prognosis snapshots; ``status`` is 0, or -1 when the times inside the
+        batch are not strictly increasing (the state is then left untouched).
+    """
+    out = np.empty((OUT_LEN, t.shape[0]))
+    windows, events, snaps, status = _ekf_kernel(cfg, st, t, current, w1_meas, w2_meas, out)
+    return out, windows, events, snaps, status
+
+
+@njit(cache=True, error_model="numpy", fastmath=FMA)
+def _ekf_kernel(
+    cfg: FloatArray,
+    st: FloatArray,
+    t: FloatArray,
+    current: FloatArray,
+    w1_meas: FloatArray,
+    w2_meas: FloatArray,
+    out: FloatArray,
+) -> tuple[FloatArray, FloatArray, FloatArray, int]:
+    """The compiled loop of :func:`ekf_batch`."""
+    n = t.shape[0]
+    bins = int(cfg[CFG_OBS_BINS])
+    for k in range(1, n):
+        if not t[k] > t[k - 1]:
+            out[:] = np.nan
+            return np.empty((0, WIN_LEN)), np.empty((0, EV_LEN)), np.empty((0, 1)), -1
+    hw = cfg[CFG_HEALTH_WINDOW]
+    windows = np.empty((int(n // hw) + 1, WIN_LEN))
+    events = np.empty((4, EV_LEN))
+    every = cfg[CFG_RUL_EVERY]
+    n_snap_max = 0
+    if math.isfinite(every) and n > 0:
+        t_next0 = st[ST_T_NEXT_RUL]
+        if not math.isfinite(t_next0):
+            t_next0 = t[0] + every
+        n_snap_max = int(max(0.0, (t[n - 1] - t_next0) / every)) + 2
+    snaps = np.empty((n_snap_max, RS_BASE_LEN + 2 * bins))
+    n_win = 0
+    n_ev = 0
+    n_snap = 0
+
+    rv0 = cfg[CFG_RV]
+    rv1 = cfg[CFG_RV + 1]
+    qd0 = cfg[CFG_Q]
+    qd1 = cfg[CFG_Q + 1]
+    qd2 = cfg[CFG_Q + 2]
+    qd3 = cfg[CFG_Q + 3]
+    alpha0 = cfg[CFG_ALPHA0]
+    bc = cfg[CFG_BOUND_C]
+    dn_watch = cfg[CFG_DN_WATCH]
+    dn_alert = cfg[CFG_DN_ALERT]
+    dn_hyst = cfg[CFG_DN_HYST]
+    nis1_lo = cfg[CFG_NIS_BOUNDS]
+    nis1_hi = cfg[CFG_NIS_BOUNDS + 1]
+    nis2_lo = cfg[CFG_NIS_BOUNDS + 2]
+    nis2_hi = cfg[CFG_NIS_BOUNDS + 3]
+    bin_samples = cfg[CFG_OBS_BIN_SAMPLES]
+    project = cfg[CFG_PROJECT] == 1.0
+    var_i = cfg[CFG_CURRENT_VAR]
+
+    init = st[ST_INIT] == 1.0
+    t_last = st[ST_T_LAST]
+    u_held = st[ST_U_HELD]
+    x0 = st[ST_X]
+    x1 = st[ST_X + 1]
+    x2 = st[ST_X + 2]
+    x3 = st[ST_X + 3]
+    p00 = st[ST_P]
+    p01 = st[ST_P + 1]
+    p02 = st[ST_P + 2]
+    p03 = st[ST_P + 3]
+    p11 = st[ST_P + 4]
+    p12 = st[ST_P + 5]
+    p13 = st[ST_P + 6]
+    p22 = st[ST_P + 7]
+    p23 = st[ST_P + 8]
+    p33 = st[ST_P + 9]
+    level = int(st[ST_DN_LEVEL])
+    t_next = st[ST_T_NEXT_RUL]
+    w_count = st[ST_W_COUNT]
+    nu_prev0 = st[ST_NU_PREV]
+    nu_prev1 = st[ST_NU_PREV + 1]
+    ob_udt = st[ST_OB_SUM_UDT]
+    ob_dt = st[ST_OB_SUM_DT]
+    ob_count = st[ST_OB_COUNT]
+    ob_head = int(st[ST_OB_HEAD])
+    ob_filled = st[ST_OB_FILLED]
+    # health-window sums in locals (written back at window ends and at the end of the batch)
+    w_t0 = st[ST_W_T0]
+    w_dn0 = st[ST_W_DN0]
+    w_n_upd = st[ST_W_N_UPD]
+    w_sum_nis = st[ST_W_SUM_NIS]
+    w_sum_dof = st[ST_W_SUM_DOF]
+    w_n_nis_out = st[ST_W_N_NIS_OUT]
+    w_n_e_out = st[ST_W_N_E_OUT]
+    w_n_e = st[ST_W_N_E]
+    c0_n = st[ST_W_CH + CH_N]
+    c0_sum = st[ST_W_CH + CH_SUM]
+    c0_sum2 = st[ST_W_CH + CH_SUM2]
+    c0_lag = st[ST_W_CH + CH_LAG]
+    c0_nlag = st[ST_W_CH + CH_N_LAG]
+    c1_n = st[ST_W_CH + CH_LEN + CH_N]
+    c1_sum = st[ST_W_CH + CH_LEN + CH_SUM]
+    c1_sum2 = st[ST_W_CH + CH_LEN + CH_SUM2]
+    c1_lag = st[ST_W_CH + CH_LEN + CH_LAG]
+    c1_nlag = st[ST_W_CH + CH_LEN + CH_N_LAG]
+
+    for k in range(n):
+        tk = t[k]
+        y0 = w1_meas[k]
+        y1 = w2_meas[k]
+        have0 = math.isfinite(y0)
+        have1 = math.isfinite(y1)
+        if not init:
+            # prior at the first sample: configured speeds, else the first measurement (else 0)
+            w0c = cfg[CFG_W0]
+            w1c = cfg[CFG_W0 + 1]
+            x0 = w0c if math.isfinite(w0c) else (y0 if have0 else 0.0)
+            x1 = w1c if math.isfinite(w1c) else (y1 if have1 else 0.0)
+            x2 = alpha0
+            x3 = cfg[CFG_M0]
+            p00 = cfg[CFG_P0]
+            p11 = cfg[CFG_P0 + 1]
+            p22 = cfg[CFG_P0 + 2]
+            p33 = cfg[CFG_P0 + 3]
+            p01 = p02 = p03 = p12 = p13 = p23 = 0.0
+            u_held = 0.0
+            init = True
+            if math.isfinite(every) and not math.isfinite(t_next):
+                t_next = tk + every
+        else:
+            dt = tk - t_last
+            # Wear does not heal (m >= 0, seed section 3.2): a negative m-hat, a statistical
+            # excursion, does not make alpha grow in the prediction. Without this the filter
+            # diverges once alpha nears 0 and m becomes unobservable.
+            m_wear = max(x3, 0.0) if project else x3
+            (
+                e00, e01, e02, e10, e11, e12, e20, e21, e22, c0, c1, c2, e44, dx0, dx1, dx2,
+                gb0, gb1, gb2,
+            ) = discretize(cfg, x0, x1, x2, m_wear, u_held, dt)  # fmt: skip
+            x0 += dx0
+            x1 += dx1
+            x2 += dx2
+            # P- = Phi P Phi^T + Q, Phi = [[E, c], [0, e44]]
+            m00 = e00 * p00 + e01 * p01 + e02 * p02 + c0 * p03
+            m01 = e00 * p01 + e01 * p11 + e02 * p12 + c0 * p13
+            m02 = e00 * p02 + e01 * p12 + e02 * p22 + c0 * p23
+            m10 = e10 * p00 + e11 * p01 + e12 * p02 + c1 * p03
+            m11 = e10 * p01 + e11 * p11 + e12 * p12 + c1 * p13
+            m12 = e10 * p02 + e11 * p12 + e12 * p22 + c1 * p23
+            m20 = e20 * p00 + e21 * p01 + e22 * p02 + c2 * p03
+            m21 = e20 * p01 + e21 * p11 + e22 * p12 + c2 * p13
+            m22 = e20 * p02 + e21 * p12 + e22 * p22 + c2 * p23
+            w0 = e00 * p03 + e01 * p13 + e02 * p23 + c0 * p33
+            w1 = e10 * p03 + e11 * p13 + e12 * p23 + c1 * p33
+            w2 = e20 * p03 + e21 * p13 + e22 * p23 + c2 * p33
+            # + Q + var(I) gb gb^T: the held current's error over the step
+            n00 = m00 * e00 + m01 * e01 + m02 * e02 + w0 * c0 + qd0 + var_i * gb0 * gb0
+            n01 = m00 * e10 + m01 * e11 + m02 * e12 + w0 * c1 + var_i * gb0 * gb1
+            n02 = m00 * e20 + m01 * e21 + m02 * e22 + w0 * c2 + var_i * gb0 * gb2
+            n11 = m10 * e10 + m11 * e11 + m12 * e12 + w1 * c1 + qd1 + var_i * gb1 * gb1
+            n12 = m10 * e20 + m11 * e21 + m12 * e22 + w1 * c2 + var_i * gb1 * gb2
+            n22 = m20 * e20 + m21 * e21 + m22 * e22 + w2 * c2 + qd2 + var_i * gb2 * gb2
+            p03 = w0 * e44
+            p13 = w1 * e44
+            p23 = w2 * e44
+            p33 = p33 * e44 * e44 + qd3
+            p00, p01, p02, p11, p12, p22 = n00, n01, n02, n11, n12, n22
+            # observed-load ring: the current held over this step, binned by steps
+            if bins > 0:
+                ob_udt += u_held * dt
+                ob_dt += dt
+                ob_count += 1.0
+                if ob_count >= bin_samples:
+                    st[ST_RING + ob_head] = ob_udt / ob_dt
+                    st[ST_RING + bins + ob_head] = ob_dt
+                    ob_head = (ob_head + 1) % bins
+                    ob_filled = min(ob_filled + 1.0, float(bins))
+                    ob_udt = 0.0
+                    ob_dt = 0.0
+                    ob_count = 0.0
+        # --- update (Joseph form), with the measured channels only
+        e0 = np.nan
+        e1 = np.nan
+        s00 = p00 + rv0
+        s11 = p11 + rv1
+        nis = np.nan
+        dof = 0.0
+        if have0 and have1:
+            e0 = y0 - x0
+            e1 = y1 - x1
+            s01 = p01
+            rdet = 1.0 / (s00 * s11 - s01 * s01)
+            i00 = s11 * rdet
+            i01 = -s01 * rdet
+            i11 = s00 * rdet
+            # K = P H^T S^-1, rows 0..3
+            k00 = p00 * i00 + p01 * i01
+            k01 = p00 * i01 + p01 * i11
+            k10 = p01 * i00 + p11 * i01
+            k11 = p01 * i01 + p11 * i11
+            k20 = p02 * i00 + p12 * i01
+            k21 = p02 * i01 + p12 * i11
+            k30 = p03 * i00 + p13 * i01
+            k31 = p03 * i01 + p13 * i11
+            nis = e0 * (i00 * e0 + i01 * e1) + e1 * (i01 * e0 + i11 * e1)
+            dof = 2.0
+            x0 += k00 * e0 + k01 * e1
+            x1 += k10 * e0 + k11 * e1
+            x2 += k20 * e0 + k21 * e1
+            x3 += k30 * e0 + k31 * e1
+            # A = (I - K H) P (full rows), then P = A - A[:, :2] K^T + K R K^T
+            a00 = p00 - k00 * p00 - k01 * p01
+            a01 = p01 - k00 * p01 - k01 * p11
+            a02 = p02 - k00 * p02 - k01 * p12
+            a03 = p03 - k00 * p03 - k01 * p13
+            a10 = p01 - k10 * p00 - k11 * p01
+            a11 = p11 - k10 * p01 - k11 * p11
+            a12 = p12 - k10 * p02 - k11 * p12
+            a13 = p13 - k10 * p03 - k11 * p13
+            a20 = p02 - k20 * p00 - k21 * p01
+            a21 = p12 - k20 * p01 - k21 * p11
+            a22 = p22 - k20 * p02 - k21 * p12
+            a23 = p23 - k20 * p03 - k21 * p13
+            a30 = p03 - k30 * p00 - k31 * p01
+            a31 = p13 - k30 * p01 - k31 * p11
+            a33 = p33 - k30 * p03 - k31 * p13
+            p00 = a00 - a00 * k00 - a01 * k01 + rv0 * k00 * k00 + rv1 * k01 * k01
+            p01 = a01 - a00 * k10 - a01 * k11 + rv0 * k00 * k10 + rv1 * k01 * k11
+            p02 = a02 - a00 * k20 - a01 * k21 + rv0 * k00 * k20 + rv1 * k01 * k21
+            p03 = a03 - a00 * k30 - a01 * k31 + rv0 * k00 * k30 + rv1 * k01 * k31
+            p11 = a11 - a10 * k10 - a11 * k11 + rv0 * k10 * k10 + rv1 * k11 * k11
+            p12 = a12 - a10 * k20 - a11 * k21 + rv0 * k10 * k20 + rv1 * k11 * k21
+            p13 = a13 - a10 * k30 - a11 * k31 + rv0 * k10 * k30 + rv1 * k11 * k31
+            p22 = a22 - a20 * k20 - a21 * k21 + rv0 * k20 * k20 + rv1 * k21 * k21
+            p23 = a23 - a20 * k30 - a21 * k31 + rv0 * k20 * k30 + rv1 * k21 * k31
+            p33 = a33 - a30 * k30 - a31 * k31 + rv0 * k30 * k30 + rv1 * k31 * k31
+        elif have0 or have1:
+            # scalar update with channel j: K = P[:, j] / S, P = A - A[:, j] K^T + r K K^T
+            if have0:
+                e = y0 - x0
+                e0 = e
+                sj = s00
+                rj = rv0
+                h0 = p00
+                h1 = p01
+                h2 = p02
+                h3 = p03
+            else:
+                e = y1 - x1
+                e1 = e
+                sj = s11
+                rj = rv1
+                h0 = p01
+                h1 = p11
+                h2 = p12
+                h3 = p13
+            kk0 = h0 / sj
+            kk1 = h1 / sj
+            kk2 = h2 / sj
+            kk3 = h3 / sj
+            nis = e * e / sj
+            dof = 1.0
+            x0 += kk0 * e
+            x1 += kk1 * e
+            x2 += kk2 * e
+            x3 += kk3 * e
+            # A = P - K h^T (h = P[:, j]); A[:, j] = h - K S... computed directly
+            a00 = p00 - kk0 * h0
+            a01 = p01 - kk0 * h1
+            a02 = p02 - kk0 * h2
+            a03 = p03 - kk0 * h3
+            a11 = p11 - kk1 * h1
+            a12 = p12 - kk1 * h2
+            a13 = p13 - kk1 * h3
+            a22 = p22 - kk2 * h2
+            a23 = p23 - kk2 * h3
+            a33 = p33 - kk3 * h3
+            # A[:, j] = h - K h_j
+            hj = h0 if have0 else h1
+            b0 = h0 - kk0 * hj
+            b1 = h1 - kk1 * hj
+            b2 = h2 - kk2 * hj
+            b3 = h3 - kk3 * hj
+            p00 = a00 - b0 * kk0 + rj * kk0 * kk0
+            p01 = a01 - b0 * kk1 + rj * kk0 * kk1
+            p02 = a02 - b0 * kk2 + rj * kk0 * kk2
+            p03 = a03 - b0 * kk3 + rj * kk0 * kk3
+            p11 = a11 - b1 * kk1 + rj * kk1 * kk1
+            p12 = a12 - b1 * kk2 + rj * kk1 * kk2
+            p13 = a13 - b1 * kk3 + rj * kk1 * kk3
+            p22 = a22 - b2 * kk2 + rj * kk2 * kk2
+            p23 = a23 - b2 * kk3 + rj * kk2 * kk3
+            p33 = a33 - b3 * kk3 + rj * kk3 * kk3
+        # alpha is non-negative (seed section 3.2)
+        if project:
+            x2 = max(x2, 0.0)
+        # --- per-sample outputs
+        sg0 = math.sqrt(max(p00, 0.0))
+        sg1 = math.sqrt(max(p11, 0.0))
+        sg2 = math.sqrt(max(p22, 0.0))
+        sg3 = math.sqrt(max(p33, 0.0))
+        dn = 1.0 - x2 / alpha0
+        out[OUT_W1, k] = x0
+        out[OUT_W2, k] = x1
+        out[OUT_ALPHA, k] = x2
+        out[OUT_M, k] = x3
+        out[OUT_SIG, k] = bc * sg0
+        out[OUT_SIG + 1, k] = bc * sg1
+        out[OUT_SIG + 2, k] = bc * sg2
+        out[OUT_SIG + 3, k] = bc * sg3
+        out[OUT_DN, k] = dn
+        out[OUT_DN_LO, k] = 1.0 - (x2 + bc * sg2) / alpha0
+        out[OUT_DN_HI, k] = 1.0 - (x2 - bc * sg2) / alpha0
+        out[OUT_E, k] = e0
+        out[OUT_E + 1, k] = e1
+        sd0 = math.sqrt(s00)
+        sd1 = math.sqrt(s11)
+        inv_sd0 = 1.0 / sd0
+        inv_sd1 = 1.0 / sd1
+        out[OUT_E_BOUND, k] = bc * sd0
+        out[OUT_E_BOUND + 1, k] = bc * sd1
+        out[OUT_NIS, k] = nis
+        # --- health-window accumulators
+        if w_count == 0.0:
+            w_t0 = tk
+            w_dn0 = dn
+        if dof > 0.0:
+            w_n_upd += 1.0
+            w_sum_nis += nis
+            w_sum_dof += dof
+            lo = nis1_lo if dof == 1.0 else nis2_lo
+            hi = nis1_hi if dof == 1.0 else nis2_hi
+            if nis < lo or nis > hi:
+                w_n_nis_out += 1.0
+        nu0 = np.nan
+        nu1 = np.nan
+        if have0:
+            nu0 = e0 * inv_sd0
+            w_n_e += 1.0
+            if abs(nu0) > bc:
+                w_n_e_out += 1.0
+            c0_n += 1.0
+            c0_sum += nu0
+            c0_sum2 += nu0 * nu0
+            if math.isfinite(nu_prev0):
+                c0_lag += nu0 * nu_prev0
+                c0_nlag += 1.0
+        if have1:
+            nu1 = e1 * inv_sd1
+            w_n_e += 1.0
+            if abs(nu1) > bc:
+                w_n_e_out += 1.0
+            c1_n += 1.0
+            c1_sum += nu1
+            c1_sum2 += nu1 * nu1
+            if math.isfinite(nu_prev1):
+                c1_lag += nu1 * nu_prev1
+                c1_nlag += 1.0
+        nu_prev0 = nu0
+        nu_prev1 = nu1
+        # --- Dn level, with hysteresis on the way down
+        target = _dn_target(dn, dn_watch, dn_alert)
+        if target < level:
+            target = max(target, _dn_target(dn + dn_hyst, dn_watch, dn_alert))
+        if target != level and math.isfinite(dn):
+            if n_ev >= events.shape[0]:
+                events = _grow(events, n_ev)
+            ev = events[n_ev]
+            ev[EV_T] = tk
+            ev[EV_FROM] = level
+            ev[EV_TO] = target
+            ev[EV_DN] = dn
+            ev[EV_DN_LO] = out[OUT_DN_LO, k]
+            ev[EV_DN_HI] = out[OUT_DN_HI, k]
+            n_ev += 1
+            level = target
+        # --- held current for the next step (zero-order hold of the last valid current)
+        ik = current[k]
+        if math.isfinite(ik):
+            u_held = ik
+        t_last = tk
+        # --- prognosis snapshot (a sample-time crossing: independent of batch splits)
+        if math.isfinite(every) and tk >= t_next:
+            row = snaps[n_snap]
+            row[RS_T] = tk
+            row[RS_X] = x0
+            row[RS_X + 1] = x1
+            row[RS_X + 2] = x2
+            row[RS_X + 3] = x3
+            row[RS_P] = p00
+            row[RS_P + 1] = p01
+            row[RS_P + 2] = p02
+            row[RS_P + 3] = p03
+            row[RS_P + 4] = p11
+            row[RS_P + 5] = p12
+            row[RS_P + 6] = p13
+            row[RS_P + 7] = p22
+            row[RS_P + 8] = p23
+            row[RS_P + 9] = p33
+            row[RS_FILLED] = ob_filled
+            for b in range(bins):
+                # oldest bin first
+                src = (ob_head + b) % bins
+                row[RS_RING + b] = st[ST_RING + src]
+                row[RS_RING + bins + b] = st[ST_RING + bins + src]
+            n_snap += 1
+            t_next += every * (math.floor((tk - t_next) / every) + 1.0)
+        # --- health window complete?
+        w_count += 1.0
+        if w_count >= hw:
+            row = windows[n_win]
+            row[WIN_T0] = w_t0
+            row[WIN_T1] = tk
+            row[WIN_N] = w_count
+            row[WIN_N_UPD] = w_n_upd
+            row[WIN_SUM_NIS] = w_sum_nis
+            row[WIN_SUM_DOF] = w_sum_dof
+            row[WIN_N_NIS_OUT] = w_n_nis_out
+            row[WIN_N_E_OUT] = w_n_e_out
+            row[WIN_N_E] = w_n_e
+            row[WIN_CH + CH_N] = c0_n
+            row[WIN_CH + CH_SUM] = c0_sum
+            row[WIN_CH + CH_SUM2] = c0_sum2
+            row[WIN_CH + CH_LAG] = c0_lag
+            row[WIN_CH + CH_N_LAG] = c0_nlag
+            row[WIN_CH + CH_LEN + CH_N] = c1_n
+            row[WIN_CH + CH_LEN + CH_SUM] = c1_sum
+            row[WIN_CH + CH_LEN + CH_SUM2] = c1_sum2
+            row[WIN_CH + CH_LEN + CH_LAG] = c1_lag
+            row[WIN_CH + CH_LEN + CH_N_LAG] = c1_nlag
+            row[WIN_DN0] = w_dn0
+            row[WIN_X] = x0
+            row[WIN_X + 1] = x1
+            row[WIN_X + 2] = x2
+            row[WIN_X + 3] = x3
+            row[WIN_SIGMA] = sg0
+            row[WIN_SIGMA + 1] = sg1
+            row[WIN_SIGMA + 2] = sg2
+            row[WIN_SIGMA + 3] = sg3
+            n_win += 1
+            w_count = 0.0
+            w_n_upd = w_sum_nis = w_sum_dof = w_n_nis_out = w_n_e_out = w_n_e = 0.0
+            c0_n = c0_sum = c0_sum2 = c0_lag = c0_nlag = 0.0
+            c1_n = c1_sum = c1_sum2 = c1_lag = c1_nlag = 0.0
+
+    st[ST_INIT] = 1.0 if init else 0.0
+    st[ST_T_LAST] = t_last
+    st[ST_U_HELD] = u_held
+    st[ST_N_SEEN] += n
+    st[ST_X] = x0
+    st[ST_X + 1] = x1
+    st[ST_X + 2] = x2
+    st[ST_X + 3] = x3
+    st[ST_P] = p00
+    st[ST_P + 1] = p01
+    st[ST_P + 2] = p02
+    st[ST_P + 3] = p03
+    st[ST_P + 4] = p11
+    st[ST_P + 5] = p12
+    st[ST_P + 6] = p13
+    st[ST_P + 7] = p22
+    st[ST_P + 8] = p23
+    st[ST_P + 9] = p33
+    st[ST_DN_LEVEL] = level
+    st[ST_T_NEXT_RUL] = t_next
+    st[ST_W_COUNT] = w_count
+    st[ST_W_T0] = w_t0
+    st[ST_W_DN0] = w_dn0
+    st[ST_W_N_UPD] = w_n_upd
+    st[ST_W_SUM_NIS] = w_sum_nis
+    st[ST_W_SUM_DOF] = w_sum_dof
+    st[ST_W_N_NIS_OUT] = w_n_nis_out
+    st[ST_W_N_E_OUT] = w_n_e_out
+    st[ST_W_N_E] = w_n_e
+    st[ST_W_CH + CH_N] = c0_n
+    st[ST_W_CH + CH_SUM] = c0_sum
+    st[ST_W_CH + CH_SUM2] = c0_sum2
+    st[ST_W_CH + CH_LAG] = c0_lag
+    st[ST_W_CH + CH_N_LAG] = c0_nlag
+    st[ST_W_CH + CH_LEN + CH_N] = c1_n
+    st[ST_W_CH + CH_LEN + CH_SUM] = c1_sum
+    st[ST_W_CH + CH_LEN + CH_SUM2] = c1_sum2
+    st[ST_W_CH + CH_LEN + CH_LAG] = c1_lag
+    st[ST_W_CH + CH_LEN + CH_N_LAG] = c1_nlag
+    st[ST_NU_PREV] = nu_prev0
+    st[ST_NU_PREV + 1] = nu_prev1
+    st[ST_OB_SUM_UDT] = ob_udt
+    st[ST_OB_SUM_DT] = ob_dt
+    st[ST_OB_COUNT] = ob_count
+    st[ST_OB_HEAD] = ob_head
+    st[ST_OB_FILLED] = ob_filled
+    return windows[:n_win], events[:n_ev], snaps[:n_snap], 0
+
+
+# ----------------------------------------------------------------------------- prognosis
+@njit(cache=True, error_model="numpy", fastmath=FMA)
+def segment(
+    plant: FloatArray, w1: float, w2: float, al: float, u: float, tau: float
+) -> tuple[float, float, float]:
+    """Exact solution over ``tau`` seconds of constant current ``u`` with ``alpha`` frozen.
+
+    With ``A(alpha)`` of seed eq. 3 (real eigenvalues ``l1 > l2``, both negative: its
+    off-diagonal terms have the same sign, its trace is negative and its determinant
+    ``(alpha r1^2 B2 + alpha r2^2 B1 + B1 B2) / (J1 J2)`` positive), ``x_eq = -A^-1 B u`` and the
+    spectral projectors ``P1 = (A - l2 I) / (l1 - l2)``, ``P2 = I - P1``:
+
+        x(t)  = x_eq + exp(l1 t) P1 d0 + exp(l2 t) P2 d0,       d0 = x(0) - x_eq
+        dv(t) = s_eq + b1 exp(l1 t) + b2 exp(l2 t)               (c = [r1, -r2])
+        int_0^tau dv^2 dt  in closed form (sums of (exp(l tau) - 1) / l terms).
+
+    ``plant`` is ``[r1, r2, B1, B2, J1, J2, Km]``.
+
+    Returns:
+        (w1(tau), w2(tau), integral of the sliding factor dv^2 over [0, tau]).
+    """
+    r1 = plant[0]
+    r2 = plant[1]
+    j1 = plant[4]
+    j2 = plant[5]
+    a = -(al * r1 * r1 + plant[2]) / j1
+    b = al * r1 * r2 / j1
+    c = al * r1 * r2 / j2
+    d = -(al * r2 * r2 + plant[3]) / j2
+    bu = plant[6] * u / j1
+    det = a * d - b * c
+    xe1 = -d * bu / det
+    xe2 = c * bu / det
+    half = 0.5 * (a - d)
+    bc = b * c
+    sq = math.sqrt(half * half + bc)
+    l2 = 0.5 * (a + d) - sq  # the larger magnitude, computed without cancellation
+    l1 = det / l2
+    # a - l2 = half + sq and d - l2 = sq - half; their product is bc: take the stable one
+    if half >= 0.0:
+        ap = half + sq
+        dp = bc / ap
+    else:
+        dp = sq - half
+        ap = bc / dp
+    d1 = w1 - xe1
+    d2 = w2 - xe2
+    inv = 0.5 / sq
+    q1 = (ap * d1 + b * d2) * inv
+    q2 = (c * d1 + dp * d2) * inv
+    em1 = math.expm1(l1 * tau)
+    em2 = math.expm1(l2 * tau)
+    ex1 = 1.0 + em1
+    ex2 = 1.0 + em2
+    w1e = xe1 + ex1 * q1 + ex2 * (d1 - q1)
+    w2e = xe2 + ex1 * q2 + ex2 * (d2 - q2)
+    seq = r1 * xe1 - r2 * xe2
+    be1 = r1 * q1 - r2 * q2
+    be2 = (r1 * d1 - r2 * d2) - be1
+    i1 = em1 / l1
+    i2 = em2 / l2
+    i11 = i1 * (ex1 + 1.0) * 0.5
+    i22 = i2 * (ex2 + 1.0) * 0.5
+    i12 = (em1 * ex2 + em2) / (l1 + l2)
+    integral = (
+        seq * seq * tau
+        + 2.0 * seq * (be1 * i1 + be2 * i2)
+        + be1 * be1 * i11
+        + 2.0 * be1 * be2 * i12
+        + be2 * be2 * i22
+    )
+    return w1e, w2e, max(integral, 0.0)
+
+
+@njit(cache=True, error_model="numpy")
+def periodic_steady_state(
+    plant: FloatArray, seg_dur: FloatArray, seg_cur: FloatArray, al: float
+) -> tuple[float, float, float, float, float, float]:
+    """Speeds at the start of the load period in its periodic steady state, ``alpha`` frozen.
+
+    The one-period map is affine, ``x -> M x + g`` with ``M = expm(A T)``; its fixed point is
+    ``(I - M)^-1 g``.
+
+    Returns:
+        (w1, w2, M00, M01, M10, M11).
+    """
+    g1 = 0.0
+    g2 = 0.0
+    period = 0.0
+    for j in range(seg_dur.shape[0]):
+        g1, g2, _ = segment(plant, g1, g2, al, seg_cur[j], seg_dur[j])
+        period += seg_dur[j]
+    m00, m10, _ = segment(plant, 1.0, 0.0, al, 0.0, period)
+    m01, m11, _ = segment(plant, 0.0, 1.0, al, 0.0, period)
+    w1, w2 = _solve_i_minus(m00, m01, m10, m11, g1, g2)
+    return w1, w2, m00, m01, m10, m11
+
+
+@njit(cache=True, error_model="numpy")
+def _solve_i_minus(
+    m00: float, m01: float, m10: float, m11: float, b1: float, b2: float
+) -> tuple[float, float]:
+    """``(I - M)^-1 b`` for a 2x2 M."""
+    a00 = 1.0 - m00
+    a11 = 1.0 - m11
+    det = a00 * a11 - m01 * m10
+    return (a11 * b1 + m01 * b2) / det, (a00 * b2 + m10 * b1) / det
+
+
+@njit(cache=True, error_model="numpy")
+def _crossing_time(
+    plant: FloatArray, w1: float, w2: float, al: float, u: float, tau: float, target: float
+) -> float:
+    """Smallest t in [0, tau] with int_0^t dv^2 = target (bisection; the integral is monotone)."""
+    lo = 0.0
+    hi = tau
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        _, _, integral = segment(plant, w1, w2, al, u, mid)
+        if integral >= target:
+            hi = mid
+        else:
+            lo = mid
+    return hi
+
+
+@njit(cache=True, error_model="numpy", fastmath=FMA)
+def one_period(
+    plant: FloatArray,
+    seg_dur: FloatArray,
+    seg_cur: FloatArray,
+    w1: float,
+    w2: float,
+    ell: float,
+    m: float,
+    ell_fail: float,
+    eps_seg: float,
+    memo: FloatArray,
+) -> tuple[float, float, float, float]:
+    """Propagate one load period from ``(w1, w2, ell = ln alpha)`` with deterioration rate ``m``.
+
+    Each constant-current segment is solved exactly with ``alpha`` frozen at its midpoint value
+    (explicit midpoint rule on ``d ln(alpha)/dt = -m dv^2``): the second pass at
+    ``exp(ell - delta_pred / 2)`` gives the speeds and ``ell_end = ell - m I``. A segment whose
+    ``ln alpha`` would change by more than ``eps_seg`` is cut into equal sub-segments (exact,
+    since the current is constant). The predictor ``delta_pred`` is the change over the same
+    sub-segment one period earlier times the growth of the segment's change between the two
+    previous periods, kept in ``memo`` (row j: sub-segment count, growth, then the changes;
+    count 0: none); without it, a first pass at the start value gives ``delta_pred = m I``.
+
+    Returns:
+        (w1, w2, ell, t_cross): ``t_cross`` is the time into the period at which ``ell`` reaches
+        ``ell_fail`` (NaN when it does not; the other values are then those at the end).
+    """
+    t = 0.0
+    for j in range(seg_dur.shape[0]):
+        tau = seg_dur[j]
+        u = seg_cur[j]
+        n_prev = int(memo[j, 0])
+        growth = memo[j, 1]
+        total_prev = 0.0
+        if n_prev > 0:
+            for sub in range(n_prev):
+                total_prev += memo[j, 2 + sub]
+            # the expected change, with a 20 % margin, sets the sub-segment count
+            n_sub = min(max(int(math.ceil(1.2 * growth * total_prev / eps_seg)), 1), MAX_SUB)
+            if n_sub != n_prev:
+                n_prev = 0
+        if n_prev == 0:
+            _, _, i_first = segment(plant, w1, w2, math.exp(ell), u, tau)
+            n_sub = min(max(int(math.ceil(m * i_first / eps_seg)), 1), MAX_SUB)
+        ts = tau / n_sub
+        total = 0.0
+        for sub in range(n_sub):
+            if n_prev > 0:
+                pred = memo[j, 2 + sub] * growth
+            elif n_sub == 1:
+                pred = m * i_first
+            else:
+                _, _, i_a = segment(plant, w1, w2, math.exp(ell), u, ts)
+                pred = m * i_a
+            al_mid = math.exp(ell - 0.5 * pred)
+            w1n, w2n, i_b = segment(plant, w1, w2, al_mid, u, ts)
+            ell_new = ell - m * i_b
+            if ell_new <= ell_fail:
+                tc = _crossing_time(plant, w1, w2, al_mid, u, ts, (ell - ell_fail) / m)
+                return w1, w2, ell_fail, t + sub * ts + tc
+            memo[j, 2 + sub] = ell - ell_new
+            total += ell - ell_new
+            w1 = w1n
+            w2 = w2n
+            ell = ell_new
+        memo[j, 1] = total / total_prev if n_prev > 0 and total_prev > 0.0 else 1.0
+        memo[j, 0] = n_sub
+        t += tau
+    return w1, w2, ell, np.nan
+
+
+@njit(cache=True, error_model="numpy")
+def drifting_probe(
+    plant: FloatArray,
+    seg_dur: FloatArray,
+    seg_cur: FloatArray,
+    ell: float,
+    m: float,
+    eps_seg: float,
+    memo: FloatArray,
+) -> tuple[float, float, float, float]:
+    """Per-period change of ``ln alpha`` on the slowly drifting periodic trajectory near ``ell``.
+
+    While alpha wears, the speeds at the period start lag the frozen-alpha steady state by an
+    offset that the period map contracts by ``M = expm(A T)`` and the drift renews each period:
+    ``lag = (I - M)^-1 d``, ``d`` = end of one period started in the steady state at ``ell``
+    minus the steady state at its end. One more period from ``steady state + lag`` gives the
+    change. ``memo`` is scratch for :func:`one_period`. Returns (ell at that period's start, change over it, lag of w1, lag of w2).
+    """
+    memo[:, 0] = 0.0
+    s1, s2, _, _, _, _ = periodic_steady_state(plant, seg_dur, seg_cur, math.exp(ell))
+    w1, w2, ell_a, _ = one_period(plant, seg_dur, seg_cur, s1, s2, ell, m, -math.inf, eps_seg, memo)
+    s1, s2, m00, m01, m10, m11 = periodic_steady_state(plant, seg_dur, seg_cur, math.exp(ell_a))
+    lag1, lag2 = _solve_i_minus(m00, m01, m10, m11, w1 - s1, w2 - s2)
+    _, _, ell_b, _ = one_period(
+        plant, seg_dur, seg_cur, s1 + lag1, s2 + lag2, ell_a, m, -math.inf, eps_seg, memo
+    )
+    return ell_a, ell_b - ell_a, lag1, lag2
+
+
+@njit(cache=True, error_model="numpy")
+def _quadratic(
+    x0: float, y0: float, x1: float, y1: float, x2: float, y2: float, x: float
+) -> tuple[float, float]:
+    """Value and derivative at x of the parabola through three points (Lagrange form)."""
+    d0 = (x0 - x1) * (x0 - x2)
+    d1 = (x1 - x0) * (x1 - x2)
+    d2 = (x2 - x0) * (x2 - x1)
+    value = (
+        y0 * (x - x1) * (x - x2) / d0
+        + y1 * (x - x0) * (x - x2) / d1
+        + y2 * (x - x0) * (x - x1) / d2
+    )
+    slope = (
+        y0 * (2.0 * x - x1 - x2) / d0
+        + y1 * (2.0 * x - x0 - x2) / d1
+        + y2 * (2.0 * x - x0 - x1) / d2
+    )
+    return value, slope
+
+
+@njit(cache=True, error_model="numpy")
+def _periods_per_ell(
+    xp: float, dp: float, xm: float, dm: float, xe: float, de: float, x: float
+) -> float:
+    """``1 / |g(x)|``: periods per unit of ln(alpha) of the flow whose time-1 map is the
+    per-period change ``delta`` (modified equation ``g = delta (1 - delta' / 2)``), with delta
+    interpolated through the three probes."""
+    delta, slope = _quadratic(xp, dp, xm, dm, xe, de, x)
+    return 1.0 / abs(delta * (1.0 - 0.5 * slope))
+
+
+@njit(cache=True, error_model="numpy")
+def time_to_failure(
+    plant: FloatArray,
+    seg_dur: FloatArray,
+    seg_cur: FloatArray,
+    w1: float,
+    w2: float,
+    al: float,
+    m: float,
+    ell_fail: float,
+    horizon: float,
+    eps_seg: float,
+    eps_jump: float,
+    memo: FloatArray,
+) -> float:
+    """Time until ``ln alpha`` reaches ``ell_fail`` under the periodic load, or NaN if not
+    within ``horizon`` (or never: ``m <= 0`` or no sliding).
+
+    Periods are simulated one by one (:func:`one_period`). Where ``ln alpha`` changes by at
+    most ``JUMP_MAX_DELTA`` per period, a span of up to ``eps_jump`` in ``ln alpha`` is crossed
+    at once ("cycle jump"): the per-period change is probed at the middle and the end of the
+    span (:func:`drifting_probe`), interpolated by a parabola with the last simulated period,
+    and the number of periods is Simpson's rule on ``d n / d ell = 1 / g(ell)``; the jump takes
+    the whole number of periods, so the load phase is kept. Jumps stop a few periods before
+    the threshold, which is always located by simulated periods. ``memo`` is scratch of shape
+    ``(segments, MAX_SUB + 2)``.
+    """
+    if not (math.isfinite(w1) and math.isfinite(w2) and math.isfinite(al) and math.isfinite(m)):
+        return np.nan
+    if al <= 0.0 or math.log(al) <= ell_fail:
+        return 0.0
+    if m <= 0.0:
+        return np.nan
+    period = 0.0
+    for j in range(seg_dur.shape[0]):
+        period += seg_dur[j]
+    ell = math.log(al)
+    t = 0.0
+    settled = 0
+    memo[:, 0] = 0.0
+    while t <= horizon:
+        ell0 = ell
+        w1, w2, ell, tc = one_period(
+            plant, seg_dur, seg_cur, w1, w2, ell, m, ell_fail, eps_seg, memo
+        )
+        if math.isfinite(tc):
+            t += tc
+            return t if t <= horizon else np.nan
+        t += period
+        delta = ell - ell0
+        if not delta < 0.0:
+            return np.nan  # no sliding over a whole period: alpha stays constant
+        settled += 1
+        if settled < 2 or -delta > JUMP_MAX_DELTA:
+            continue
+        span = min(eps_jump, ell - ell_fail + JUMP_MARGIN_PERIODS * delta)
+        if span < JUMP_MIN_PERIODS * -delta:
+            continue
+        xm, dm, _, _ = drifting_probe(plant, seg_dur, seg_cur, ell - 0.5 * span, m, eps_seg, memo)
+        xe, de, lag1, lag2 = drifting_probe(plant, seg_dur, seg_cur, ell - span, m, eps_seg, memo)
+        target = ell - span
+        n = (span / 6.0) * (
+            _periods_per_ell(ell0, delta, xm, dm, xe, de, ell)
+            + 4.0 * _periods_per_ell(ell0, delta, xm, dm, xe, de, ell - 0.5 * span)
+            + _periods_per_ell(ell0, delta, xm, dm, xe, de, target)
+        )
+        k = math.floor(n)
+        if k < 2.0:
+            continue
+        if t + k * period > horizon:
+            return np.nan  # alpha stays above the threshold beyond the horizon
+        # back from the target by the fractional part of a period
+        ell = target + (n - k) / _periods_per_ell(ell0, delta, xm, dm, xe, de, target)
+        s1, s2, _, _, _, _ = periodic_steady_state(plant, seg_dur, seg_cur, math.exp(ell))
+        w1 = s1 + lag1
+        w2 = s2 + lag2
+        t += k * period
+        settled = 1
+        memo[:, 0] = 0.0
+    return np.nan
+
+
+@njit(cache=True, error_model="numpy")
+def rul_times(
+    plant: FloatArray,
+    seg_dur: FloatArray,
+    seg_cur: FloatArray,
+    samples: FloatArray,
+    ell_fail: float,
+    horizon: float,
+    eps_seg: float,
+    eps_jump: float,
+) -> FloatArray:
+    """:func:`time_to_failure` for each row ``[w1, w2, alpha, m]`` of ``samples``."""
+    n = samples.shape[0]
+    times = np.empty(n)
+    memo = np.zeros((seg_dur.shape[0], MAX_SUB + 2))
+    for i in range(n):
+        times[i] = time_to_failure(
+            plant,
+            seg_dur,
+            seg_cur,
+            samples[i, 0],
+            samples[i, 1],
+            samples[i, 2],
+            samples[i, 3],
+            ell_fail,
+            horizon,
+            eps_seg,
+            eps_jump,
+            memo,
+        )
+    return times
