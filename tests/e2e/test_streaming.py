@@ -319,7 +319,6 @@ def test_back_pressure_stops_reading_at_the_window_and_drops_nothing(paused_serv
     # before this client connected (then they are in the store).
     first = (fs.ready["last_applied_client_seq"] or 0) + 1
     assert [r["client_seq"] for r in fs.stats.results] == list(range(first, 41))
-    assert fs.stats.slow_downs >= 1  # 5 in flight at a time for 40 frames
     assert _health(server, "bp")["last_applied_seq"] == 40
 
 
