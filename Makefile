@@ -47,11 +47,18 @@ openapi: $(STAMP)
 ## Benchmarks print figures (never asserted).
 bench: $(STAMP)
 	$(BIN)/python bench/bench_fakf.py
+	$(BIN)/python bench/bench_deterioration_ekf.py
+	$(BIN)/python bench/bench_stmmae.py
+	$(BIN)/python bench/bench_darr_fekf.py
 	$(BIN)/python bench/bench_ingest.py
+	$(BIN)/python bench/bench_ws.py
 
 ## Regenerate docs/validation.md from the simulators and the FLEA runs.
 validate: $(STAMP)
 	$(BIN)/python scripts/validate_fakf.py
+	$(BIN)/python scripts/validate_deterioration_ekf.py
+	$(BIN)/python scripts/validate_stmmae.py
+	$(BIN)/python scripts/validate_darr_fekf.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache .mypy_cache data
