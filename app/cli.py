@@ -90,8 +90,9 @@ def _demo_feeder(url: str, key: str, stop: threading.Event) -> None:
     from app.tools.simulate import run_simulation
 
     try:
-        # Waits for /readyz itself. Every second aircraft's flight controls get surface faults.
-        run_simulation(url, key, stop_event=stop, flight_controls=True)
+        # Waits for /readyz itself. Every second aircraft's flight controls get surface faults;
+        # the taxi drives wear out at different rates.
+        run_simulation(url, key, stop_event=stop, flight_controls=True, friction_drives=True)
     except Exception as exc:  # the demo feeder must never take the server down
         print(f"demo simulator stopped: {exc}", file=sys.stderr)
 

@@ -122,6 +122,10 @@ class DekfConfig:
         nonnegative: clip alpha-hat at 0 and predict with the wear rate max(m-hat, 0).
         bound_sigma: c of the bounds ``c sqrt(P_ii)`` and ``c sqrt(S_jj)`` (eqs. 24, 26).
         expm_tol: remainder bound of the Taylor series of the discretization.
+        sample_period_s: nominal sample period (s). A spacing of the sample times within
+            0.1 % of it is taken as exactly it, so that the rounding of absolute time stamps
+            (about 2e-7 s for POSIX seconds, 0.02 % of a 1 ms period) does not enter the
+            discretization as noise. None: the actual spacing of each pair of samples.
         health_window_samples: health window length, stream samples.
         consistency_sigma: z of the innovation tests (NIS mean two-sided, bias, whiteness).
         dn_watch, dn_alert: Dn levels of the status (and of ``dn_threshold_crossed``).
@@ -150,6 +154,7 @@ class DekfConfig:
     nonnegative: bool = True
     bound_sigma: float = 3.0
     expm_tol: float = 1e-9
+    sample_period_s: float | None = None
     health_window_samples: int = 10_000
     consistency_sigma: float = 3.0
     dn_watch: float = 0.5
@@ -222,6 +227,7 @@ def _kernel_config(config: DekfConfig) -> FloatArray:
     cfg[kern.CFG_CURRENT_VAR] = config.current_var
     cfg[kern.CFG_INV_J1] = 1.0 / config.plant.j1_kg_m2
     cfg[kern.CFG_INV_J2] = 1.0 / config.plant.j2_kg_m2
+    cfg[kern.CFG_DT_NOMINAL] = config.sample_period_s or 0.0
     cfg.setflags(write=False)
     return cfg
 
@@ -294,6 +300,10 @@ def _boolean(name: str, value: Any) -> bool:
     return value
 
 
+def _optional_positive(name: str, value: Any) -> float | None:
+    return None if value is None else _positive(name, value)
+
+
 def _optional_speed(name: str, value: Any) -> float | None:
     return None if value is None else _finite(name, value)
 
@@ -329,6 +339,7 @@ def parse_config(raw: Mapping[str, Any]) -> DekfConfig:
         nonnegative=_boolean("nonnegative", get("nonnegative", d.nonnegative)),
         bound_sigma=_positive("bound_sigma", get("bound_sigma", d.bound_sigma)),
         expm_tol=_fraction("expm_tol", get("expm_tol", d.expm_tol)),
+        sample_period_s=_optional_positive("sample_period_s", get("sample_period_s", d.sample_period_s)),
         health_window_samples=_integer(
             "health_window_samples",
             get("health_window_samples", d.health_window_samples),

@@ -53,7 +53,11 @@ ACTUATOR_KINDS: dict[str, ActuatorKind] = {
         # instead of the seed's 3.3e-5, which leaves m so uncertain that RUL intervals are
         # unusable (docs/validation.md, "Run to failure"). The seed's Q stays the estimator's
         # own default and tracks abrupt changes of m faster.
-        default_estimators={"deterioration_ekf": {"q_diag": [0.0, 0.0, 0.0, 1e-13]}},
+        # The tuning is per sample at 1 kHz, so the kind also states that period (absolute time
+        # stamps then do not jitter the discretization).
+        default_estimators={
+            "deterioration_ekf": {"q_diag": [0.0, 0.0, 0.0, 1e-13], "sample_period_s": 0.001}
+        },
     ),
     "ema_voltage": ActuatorKind(
         name="ema_voltage",

@@ -75,6 +75,7 @@ class _Stream:
     cycle_index: int = 0
     kind: str = ACTUATOR_KIND
     inject_faults: bool = False
+    wear_rate: float = 0.0
     pending_t: np.ndarray | None = None
     pending: dict[str, np.ndarray] | None = None
     pending_pos: int = 0
@@ -143,23 +144,7 @@ class _Fleet:
         self, stream: _Stream, n_samples: int
     ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         """The next ``n_samples`` of a stream (may span two plant cycles)."""
-        t_parts: list[np.ndarray] = []
-        parts: dict[str, list[np.ndarray]] = {name: [] for name in CHANNELS}
-        needed = n_samples
-        while needed > 0:
-            if stream.pending_t is None or stream.pending_pos >= len(stream.pending_t):
-                self._next_cycle(stream)
-            assert stream.pending_t is not None and stream.pending is not None
-            take = min(needed, len(stream.pending_t) - stream.pending_pos)
-            sl = slice(stream.pending_pos, stream.pending_pos + take)
-            t_parts.append(stream.pending_t[sl])
-            for name in CHANNELS:
-                parts[name].append(stream.pending[name][sl])
-            stream.pending_pos += take
-            needed -= take
-        t_s = np.concatenate(t_parts)
-        stream.t_next_s = float(t_s[-1]) + 1.0 / self.sample_rate_hz
-        return t_s, {name: np.concatenate(chunks) for name, chunks in parts.items()}
+        return _take(stream, n_samples, self.sample_rate_hz, lambda: self._next_cycle(stream))
 
 
 #: Stream seconds of one simulated flight of a flight-controls unit (the plant restarts from trim).
@@ -217,23 +202,82 @@ class _Flights:
         stream.pending_pos = 0
 
     def next_batch(self, stream: _Stream, n_samples: int) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        t_parts: list[np.ndarray] = []
-        parts: dict[str, list[np.ndarray]] = {}
-        needed = n_samples
-        while needed > 0:
-            if stream.pending_t is None or stream.pending_pos >= len(stream.pending_t):
-                self._next_chunk(stream)
-            assert stream.pending_t is not None and stream.pending is not None
-            take = min(needed, len(stream.pending_t) - stream.pending_pos)
-            sl = slice(stream.pending_pos, stream.pending_pos + take)
-            t_parts.append(stream.pending_t[sl])
-            for name, values in stream.pending.items():
-                parts.setdefault(name, []).append(values[sl])
-            stream.pending_pos += take
-            needed -= take
-        t_s = np.concatenate(t_parts)
-        stream.t_next_s = float(t_s[-1]) + 1.0 / FLIGHT_RATE_HZ
-        return t_s, {name: np.concatenate(chunks) for name, chunks in parts.items()}
+        return _take(stream, n_samples, FLIGHT_RATE_HZ, lambda: self._next_chunk(stream))
+
+
+#: Friction drives: the plant at 1 kHz (the prognosis tuning of the estimator assumes it),
+#: simulated in chunks that carry the contact quality and speeds over.
+DRIVE_KIND = "friction_drive"
+DRIVE_RATE_HZ = 1000.0
+DRIVE_CHUNK_S = 10.0
+#: Wear rates of the demo drives, one per aircraft in turn: failure (Dn = 0.9) after about
+#: 220 s at m = 0.01 under the 20 A square wave, ten times later at 0.001.
+DRIVE_WEAR_RATES = (0.001, 0.01, 0.003)
+#: RUL levels for the demo drives (stream seconds), scaled to their short lives.
+DRIVE_ESTIMATORS = {
+    "deterioration_ekf": {
+        "q_diag": [0.0, 0.0, 0.0, 1e-13],
+        "sample_period_s": 1.0 / DRIVE_RATE_HZ,
+        "rul_watch_s": 600.0,
+        "rul_alert_s": 120.0,
+    }
+}
+
+
+class _Drives:
+    """Friction-drive telemetry: the plant wears continuously across chunks."""
+
+    def __init__(self) -> None:
+        self.plant: dict[int, tuple[float, float, float]] = {}  # id(stream) -> alpha, w1, w2
+
+    def _next_chunk(self, stream: _Stream) -> None:
+        from estimators.simulators.friction_drive import simulate_friction_drive
+
+        alpha, w1, w2 = self.plant.get(id(stream), (10.0, 0.0, 0.0))
+        # One sample more than the chunk: its true state starts the next chunk, so that the plant
+        # runs on without a repeated or skipped step.
+        t, channels, truth = simulate_friction_drive(
+            DRIVE_CHUNK_S + 1.0 / DRIVE_RATE_HZ,
+            DRIVE_RATE_HZ,
+            alpha0=alpha,
+            m=stream.wear_rate,
+            seed=stream.seed * 1_000_003 + stream.cycle_index,
+            initial_speeds=(w1, w2),
+            t0_s=stream.cycle_index * DRIVE_CHUNK_S,
+        )
+        self.plant[id(stream)] = (float(truth["alpha"][-1]), float(truth["w1"][-1]), float(truth["w2"][-1]))
+        stream.cycle_index += 1
+        n = len(t) - 1
+        stream.pending_t = stream.t_next_s + np.arange(n, dtype=np.float64) / DRIVE_RATE_HZ
+        stream.pending = {k: np.asarray(v[:n], dtype=np.float64) for k, v in channels.items()}
+        stream.pending_pos = 0
+
+    def next_batch(self, stream: _Stream, n_samples: int) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        return _take(stream, n_samples, DRIVE_RATE_HZ, lambda: self._next_chunk(stream))
+
+
+def _take(
+    stream: _Stream, n_samples: int, rate_hz: float, refill: Callable[[], None]
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """The next ``n_samples`` of a chunked stream, refilling its pending chunk as needed."""
+    t_parts: list[np.ndarray] = []
+    parts: dict[str, list[np.ndarray]] = {}
+    needed = n_samples
+    while needed > 0:
+        if stream.pending_t is None or stream.pending_pos >= len(stream.pending_t):
+            refill()
+        assert stream.pending_t is not None and stream.pending is not None
+        take = min(needed, len(stream.pending_t) - stream.pending_pos)
+        sl = slice(stream.pending_pos, stream.pending_pos + take)
+        t_parts.append(stream.pending_t[sl])
+        for name, values in stream.pending.items():
+            parts.setdefault(name, []).append(values[sl])
+        stream.pending_pos += take
+        needed -= take
+        # The next chunk (refilled on the next turn) starts one period after this part.
+        stream.t_next_s = float(t_parts[-1][-1]) + 1.0 / rate_hz
+    t_s = np.concatenate(t_parts)
+    return t_s, {name: np.concatenate(chunks) for name, chunks in parts.items()}
 
 
 def demo_layout(
@@ -341,6 +385,7 @@ def run_simulation(
     transport: str = "rest",
     flight_controls: bool = False,
     faults: str = "random",
+    friction_drives: bool = False,
 ) -> SimulationSummary:
     """Register a demo fleet and stream simulated EMA telemetry to it.
 
@@ -366,6 +411,9 @@ def run_simulation(
         faults: surface faults injected into the flight controls of every second aircraft:
             ``"random"`` (a stuck and an oscillating surface per 300 s flight), ``"paper"`` (the
             seed paper's five-fault sequence) or ``"none"``.
+        friction_drives: also give every aircraft a ``taxi-drive`` (kind ``friction_drive``,
+            deterioration EKF with RUL) that wears under a 20 A square-wave current at 1 kHz,
+            with wear rates from :data:`DRIVE_WEAR_RATES`.
         transport: ``"rest"`` posts batches; ``"ws"`` streams them as WebSocket frames (JSON
             frames for ``fmt="json"``, Arrow frames otherwise), resuming after a dropped
             connection.
@@ -447,6 +495,32 @@ def run_simulation(
                 summary.actuators.append((tail, actuator_id))
                 log(f"simulate: {tail}/{actuator_id} flight controls" + (f", {faults} faults" if inject else ""))
 
+        if friction_drives:
+            for a, tail in enumerate(list(summary.aircraft)):
+                actuator_id = "taxi-drive"
+                client.create_actuator(tail, actuator_id, kind=DRIVE_KIND, estimators=DRIVE_ESTIMATORS)
+                t_last = client.health(tail, actuator_id).get("t_last_s")
+                if t_last is not None:
+                    # The plant's wear is not stored: a drive with data is not resumed.
+                    log(f"simulate: {tail}/{actuator_id} has data already; not simulated again")
+                    continue
+                wear = DRIVE_WEAR_RATES[a % len(DRIVE_WEAR_RATES)]
+                streams.append(
+                    _Stream(
+                        tail=tail,
+                        actuator_id=actuator_id,
+                        load_lbs=0.0,
+                        degrade_over_s=None,
+                        seed=seed * 10_007 + 9_000 + a,
+                        t_next_s=now_s,
+                        t_begin_s=now_s,
+                        kind=DRIVE_KIND,
+                        wear_rate=wear,
+                    )
+                )
+                summary.actuators.append((tail, actuator_id))
+                log(f"simulate: {tail}/{actuator_id} friction drive, wear rate m = {wear:g}")
+
         def faults_for(stream: _Stream, chunk: int) -> tuple[Any, ...]:
             if not stream.inject_faults:
                 return ()
@@ -458,6 +532,8 @@ def run_simulation(
 
         flights = _Flights(faults_for)
         flight_batch = max(1, round(batch_seconds * FLIGHT_RATE_HZ))
+        drives = _Drives()
+        drive_batch = max(1, round(batch_seconds * DRIVE_RATE_HZ))
 
         fleet = _Fleet(streams, sample_rate_hz, simulate, _nominal_friction())
         ws = _WsSenders(base_url, api_key, binary=fmt != "json") if transport == "ws" else None
@@ -480,6 +556,8 @@ def run_simulation(
             for stream in streams:
                 if stream.kind == FLIGHT_KIND:
                     t_s, channels = flights.next_batch(stream, flight_batch)
+                elif stream.kind == DRIVE_KIND:
+                    t_s, channels = drives.next_batch(stream, drive_batch)
                 else:
                     t_s, channels = fleet.next_batch(stream, samples_per_batch)
                 # The batch id is derived from the stream time: unique per stream, stable across
@@ -576,6 +654,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default="random",
         help="surface faults injected into every second aircraft's flight controls (random)",
     )
+    parser.add_argument(
+        "--friction-drives",
+        action="store_true",
+        help="also run a wearing friction drive (deterioration EKF, RUL) on every aircraft",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
         "--tail-prefix", default="FH", help="tails are PREFIX-001, PREFIX-002, ... (default FH)"
@@ -606,6 +689,7 @@ def run(args: argparse.Namespace) -> int:
             transport=args.transport,
             flight_controls=args.flight_controls,
             faults=args.faults,
+            friction_drives=args.friction_drives,
         )
     except KeyboardInterrupt:
         stop_event.set()

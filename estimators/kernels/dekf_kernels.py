@@ -60,7 +60,10 @@ CFG_PROJECT = 35  # 1.0: alpha-hat clipped at 0, wear rate max(m-hat, 0) in the 
 CFG_CURRENT_VAR = 36  # variance of the measured current (A^2), propagated as process noise
 CFG_INV_J1 = 37  # 1 / J1
 CFG_INV_J2 = 38  # 1 / J2
-CFG_LEN = 39
+CFG_DT_NOMINAL = 39  # nominal sample period (0: use the actual spacing)
+CFG_LEN = 40
+#: A spacing within this fraction of the nominal period is taken as the nominal period.
+DT_SNAP_TOL = 1e-3
 
 ST_INIT = 0
 ST_T_LAST = 1
@@ -422,6 +425,7 @@ def _ekf_kernel(
     windows = np.empty((int(n // hw) + 1, WIN_LEN))
     events = np.empty((4, EV_LEN))
     every = cfg[CFG_RUL_EVERY]
+    dt_nominal = cfg[CFG_DT_NOMINAL]
     n_snap_max = 0
     if math.isfinite(every) and n > 0:
         t_next0 = st[ST_T_NEXT_RUL]
@@ -524,6 +528,8 @@ def _ekf_kernel(
                 t_next = tk + every
         else:
             dt = tk - t_last
+            if dt_nominal > 0.0 and abs(dt - dt_nominal) <= DT_SNAP_TOL * dt_nominal:
+                dt = dt_nominal
             # Wear does not heal (m >= 0, seed section 3.2): a negative m-hat, a statistical
             # excursion, does not make alpha grow in the prediction. Without this the filter
             # diverges once alpha nears 0 and m becomes unobservable.

@@ -294,6 +294,7 @@ def test_simulate_registers_fleet_and_degradation_shows_in_fakf_health(
         log=lines.append,
         flight_controls=True,
         faults="paper",
+        friction_drives=True,
     )
     assert summary.errors == 0, lines
     assert summary.aircraft == ["SIM-001", "SIM-002"]
@@ -304,8 +305,18 @@ def test_simulate_registers_fleet_and_degradation_shows_in_fakf_health(
         ("SIM-002", "ema-right"),
         ("SIM-001", "flight-controls"),
         ("SIM-002", "flight-controls"),
+        ("SIM-001", "taxi-drive"),
+        ("SIM-002", "taxi-drive"),
     ]
-    assert summary.samples_sent == 6 * 12_000
+    assert summary.samples_sent == 6 * 12_000 + 2 * 120_000
+
+    # Taxi drives: SIM-002's wears ten times faster (m = 0.01 against 0.001); its RUL is shorter
+    # and the board sorted by RUL lists its aircraft first.
+    for tail in ("SIM-001", "SIM-002"):
+        client.wait_applied(tail, "taxi-drive", seq=24, timeout_s=120.0)
+    rul = {t: client.rul(t, "taxi-drive")["latest"]["deterioration_ekf"] for t in ("SIM-001", "SIM-002")}
+    assert rul["SIM-002"]["q50_s"] < 0.3 * rul["SIM-001"]["q50_s"]
+    assert [a["tail"] for a in client.fleet_health(sort="rul")["aircraft"]][:2] == ["SIM-002", "SIM-001"]
 
     # Flight controls: SIM-002 flies the seed paper's fault sequence (left aileron stuck from
     # 10 to 40 s, right aileron oscillating from 70 to 100 s), SIM-001 flies without faults.
@@ -345,7 +356,7 @@ def test_simulate_registers_fleet_and_degradation_shows_in_fakf_health(
     fleet = {a["tail"]: a for a in client.fleet_health(sort="status")["aircraft"]}
     assert fleet["SIM-001"]["status"] == "ok"
     assert fleet["SIM-002"]["status"] in ("watch", "alert")
-    assert len(fleet["SIM-002"]["actuators"]) == 3  # two EMAs and the flight controls
+    assert len(fleet["SIM-002"]["actuators"]) == 4  # two EMAs, flight controls, taxi drive
 
     # A second run, streaming over WebSocket, continues each stream after its last sample
     # instead of colliding with it.
