@@ -20,6 +20,7 @@ reverse.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal, Protocol
@@ -224,3 +225,46 @@ def worst_status(statuses: Sequence[str]) -> Status:
         if STATUS_ORDER[s] > STATUS_ORDER[worst]:
             worst = s  # type: ignore[assignment]
     return worst
+
+
+# ----------------------------------------------------------------------------- state codec
+def dump_vector_state(kind: str, version: int, t_last_s: float, vector: FloatArray) -> bytes:
+    """The byte form of a state held as one float vector: JSON with the kind and version, and
+    every float as ``float.hex`` (exact round trip, NaN and infinities included)."""
+    doc = {
+        "version": version,
+        "kind": kind,
+        "t_last_s": float(t_last_s).hex(),
+        "vector": [float(v).hex() for v in vector],
+    }
+    return json.dumps(doc, separators=(",", ":")).encode("ascii")
+
+
+def load_vector_state(data: bytes, kind: str, version: int, label: str) -> tuple[float, FloatArray]:
+    """Inverse of :func:`dump_vector_state`: ``(t_last_s, read-only vector)``.
+
+    Raises:
+        StateVersionError: the version is not ``version``.
+        EstimatorError: the bytes are not a state of ``kind`` (``label`` names it in messages).
+    """
+    try:
+        doc = json.loads(data)
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise EstimatorError(f"not {label} state: {exc}") from exc
+    if not isinstance(doc, dict) or "version" not in doc:
+        raise EstimatorError(f"not {label} state: no version")
+    if doc["version"] != version:
+        raise StateVersionError(
+            f"{label} state version {doc['version']!r} is not supported (expected {version})"
+        )
+    if doc.get("kind", kind) != kind:
+        raise EstimatorError(f"not {label} state: kind {doc.get('kind')!r}")
+    try:
+        vec = np.array([float.fromhex(v) for v in doc["vector"]], dtype=np.float64)
+        t_last = float.fromhex(doc["t_last_s"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise EstimatorError(f"not {label} state: {exc}") from exc
+    if vec.ndim != 1:
+        raise EstimatorError(f"not {label} state: vector of shape {vec.shape}")
+    vec.setflags(write=False)
+    return t_last, vec

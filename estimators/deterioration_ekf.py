@@ -36,7 +36,6 @@ Choices where the seed is silent (docs/methods-deterioration-ekf.md has the reas
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field, fields
@@ -55,10 +54,11 @@ from estimators.base import (
     HealthWindow,
     OutOfOrderError,
     RulEstimate,
-    StateVersionError,
     Status,
     StatusReport,
     StepOutputs,
+    dump_vector_state,
+    load_vector_state,
     worst_status,
 )
 from estimators.kernels import dekf_kernels as kern
@@ -451,14 +451,8 @@ def initial_state(config: DekfConfig) -> DekfState:
 
 
 def dump_state(state: DekfState) -> bytes:
-    """JSON with the version, and every float as ``float.hex`` (exact round trip)."""
-    doc = {
-        "version": state.version,
-        "kind": NAME,
-        "t_last_s": float(state.t_last_s).hex(),
-        "vector": [float(v).hex() for v in state.vector],
-    }
-    return json.dumps(doc, separators=(",", ":")).encode("ascii")
+    """Versioned byte form of the state (exact round trip; see :func:`dump_vector_state`)."""
+    return dump_vector_state(NAME, state.version, state.t_last_s, state.vector)
 
 
 def load_state(data: bytes) -> DekfState:
@@ -468,26 +462,9 @@ def load_state(data: bytes) -> DekfState:
         StateVersionError: the version is not ``STATE_VERSION``.
         EstimatorError: the bytes are not a state of this estimator.
     """
-    try:
-        doc = json.loads(data)
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise EstimatorError(f"not a {NAME} state: {exc}") from exc
-    if not isinstance(doc, dict) or "version" not in doc:
-        raise EstimatorError(f"not a {NAME} state: no version")
-    if doc["version"] != STATE_VERSION:
-        raise StateVersionError(
-            f"{NAME} state version {doc['version']!r} is not supported (expected {STATE_VERSION})"
-        )
-    if doc.get("kind") != NAME:
-        raise EstimatorError(f"not a {NAME} state: kind {doc.get('kind')!r}")
-    try:
-        vec = np.array([float.fromhex(v) for v in doc["vector"]], dtype=np.float64)
-        t_last = float.fromhex(doc["t_last_s"])
-    except (KeyError, TypeError, ValueError) as exc:
-        raise EstimatorError(f"not a {NAME} state: {exc}") from exc
-    if vec.ndim != 1 or vec.shape[0] < kern.ST_BASE_LEN or (vec.shape[0] - kern.ST_BASE_LEN) % 2:
+    t_last, vec = load_vector_state(data, NAME, STATE_VERSION, f"a {NAME}")
+    if vec.shape[0] < kern.ST_BASE_LEN or (vec.shape[0] - kern.ST_BASE_LEN) % 2:
         raise EstimatorError(f"not a {NAME} state: vector of length {vec.shape[0]}")
-    vec.setflags(write=False)
     return DekfState(version=STATE_VERSION, t_last_s=t_last, vector=vec)
 
 

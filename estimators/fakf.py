@@ -35,7 +35,6 @@ Choices where the seed is silent (see docs/methods.md, "FAKF"):
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
@@ -51,9 +50,10 @@ from estimators.base import (
     FloatArray,
     HealthWindow,
     OutOfOrderError,
-    StateVersionError,
     Status,
     StepOutputs,
+    dump_vector_state,
+    load_vector_state,
     worst_status,
 )
 from estimators.kernels import fakf_kernels as kern
@@ -383,14 +383,8 @@ def initial_state(config: FakfConfig) -> FakfState:
 
 
 def dump_state(state: FakfState) -> bytes:
-    """JSON with the version, and every float as ``float.hex`` (exact round trip)."""
-    doc = {
-        "version": state.version,
-        "kind": NAME,
-        "t_last_s": float(state.t_last_s).hex(),
-        "vector": [float(v).hex() for v in state.vector],
-    }
-    return json.dumps(doc, separators=(",", ":")).encode("ascii")
+    """Versioned byte form of the state (exact round trip; see :func:`dump_vector_state`)."""
+    return dump_vector_state(NAME, state.version, state.t_last_s, state.vector)
 
 
 def load_state(data: bytes) -> FakfState:
@@ -398,26 +392,11 @@ def load_state(data: bytes) -> FakfState:
 
     Raises:
         StateVersionError: the version is not ``STATE_VERSION``.
-        EstimatorError: the bytes are not a FAKF state.
+        EstimatorError: the bytes are not a state of this estimator.
     """
-    try:
-        doc = json.loads(data)
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise EstimatorError(f"not a FAKF state: {exc}") from exc
-    if not isinstance(doc, dict) or "version" not in doc:
-        raise EstimatorError("not a FAKF state: no version")
-    if doc["version"] != STATE_VERSION:
-        raise StateVersionError(
-            f"FAKF state version {doc['version']!r} is not supported (expected {STATE_VERSION})"
-        )
-    try:
-        vec = np.array([float.fromhex(v) for v in doc["vector"]], dtype=np.float64)
-        t_last = float.fromhex(doc["t_last_s"])
-    except (KeyError, TypeError, ValueError) as exc:
-        raise EstimatorError(f"not a FAKF state: {exc}") from exc
+    t_last, vec = load_vector_state(data, NAME, STATE_VERSION, "a FAKF")
     if vec.shape != (kern.ST_LEN,):
         raise EstimatorError(f"not a FAKF state: vector of length {vec.shape[0]}")
-    vec.setflags(write=False)
     return FakfState(version=STATE_VERSION, t_last_s=t_last, vector=vec)
 
 

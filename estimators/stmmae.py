@@ -19,7 +19,6 @@ Equations, choices where the seed is silent and the configuration reference:
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields
@@ -36,10 +35,11 @@ from estimators.base import (
     FloatArray,
     HealthWindow,
     OutOfOrderError,
-    StateVersionError,
     Status,
     StatusReport,
     StepOutputs,
+    dump_vector_state,
+    load_vector_state,
 )
 from estimators.kernels import stmmae_kernels as kern
 from estimators.models.small_uav import reference_model
@@ -569,14 +569,8 @@ def initial_state(config: StmmaeConfig) -> StmmaeState:
 
 
 def dump_state(state: StmmaeState) -> bytes:
-    """JSON with the version, and every float as ``float.hex`` (exact round trip)."""
-    doc = {
-        "version": state.version,
-        "kind": NAME,
-        "t_last_s": float(state.t_last_s).hex(),
-        "vector": [float(v).hex() for v in state.vector],
-    }
-    return json.dumps(doc, separators=(",", ":")).encode("ascii")
+    """Versioned byte form of the state (exact round trip; see :func:`dump_vector_state`)."""
+    return dump_vector_state(NAME, state.version, state.t_last_s, state.vector)
 
 
 def load_state(data: bytes) -> StmmaeState:
@@ -584,26 +578,9 @@ def load_state(data: bytes) -> StmmaeState:
 
     Raises:
         StateVersionError: the version is not ``STATE_VERSION``.
-        EstimatorError: the bytes are not an STMMAE state.
+        EstimatorError: the bytes are not a state of this estimator.
     """
-    try:
-        doc = json.loads(data)
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise EstimatorError(f"not an STMMAE state: {exc}") from exc
-    if not isinstance(doc, dict) or "version" not in doc:
-        raise EstimatorError("not an STMMAE state: no version")
-    if doc["version"] != STATE_VERSION:
-        raise StateVersionError(
-            f"STMMAE state version {doc['version']!r} is not supported (expected {STATE_VERSION})"
-        )
-    if doc.get("kind") != NAME:
-        raise EstimatorError(f"not an STMMAE state: kind {doc.get('kind')!r}")
-    try:
-        vec = np.array([float.fromhex(v) for v in doc["vector"]], dtype=np.float64)
-        t_last = float.fromhex(doc["t_last_s"])
-    except (KeyError, TypeError, ValueError) as exc:
-        raise EstimatorError(f"not an STMMAE state: {exc}") from exc
-    vec.setflags(write=False)
+    t_last, vec = load_vector_state(data, NAME, STATE_VERSION, "an STMMAE")
     return StmmaeState(version=STATE_VERSION, t_last_s=t_last, vector=vec)
 
 
