@@ -55,6 +55,12 @@ from estimators.base import (
     StatusReport,
     StepOutputs,
 )
+from estimators.checks import channel_block
+from estimators.checks import finite as _finite
+from estimators.checks import finite_or_none as _finite_or_none
+from estimators.checks import is_number as _is_number
+from estimators.checks import non_negative as _non_negative
+from estimators.checks import positive as _positive
 from estimators.kernels import darr_kernels as kern
 
 NAME = "darr_fekf"
@@ -425,28 +431,12 @@ class DarrFekfConfig:
 
 
 # --------------------------------------------------------------------- parsing helpers
-def _is_number(value: Any) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool)
 
 
-def _finite(name: str, value: Any) -> float:
-    if not _is_number(value) or not math.isfinite(float(value)):
-        raise ConfigError(f"{name}: expected a finite number, got {value!r}")
-    return float(value)
 
 
-def _positive(name: str, value: Any) -> float:
-    v = _finite(name, value)
-    if v <= 0.0:
-        raise ConfigError(f"{name}: expected a positive number, got {value!r}")
-    return v
 
 
-def _non_negative(name: str, value: Any) -> float:
-    v = _finite(name, value)
-    if v < 0.0:
-        raise ConfigError(f"{name}: expected a non-negative number, got {value!r}")
-    return v
 
 
 def _auto_or_positive(name: str, value: Any) -> float | Literal["auto"]:
@@ -1165,9 +1155,6 @@ def _component(vector: Sequence[int]) -> str:
     return "+".join(f"s{i + 1}" for i, c in enumerate(vector) if c)
 
 
-def _finite_or_none(value: float) -> float | None:
-    v = float(value)
-    return v if math.isfinite(v) else None
 
 
 def _candidates(config: DarrFekfConfig, vector: Sequence[int]) -> list[list[str]]:
@@ -1347,19 +1334,6 @@ def diagnosis_detail(config: DarrFekfConfig, state: DarrFekfState) -> dict[str, 
 
 
 # ----------------------------------------------------------------------------- step
-def _channel_matrix(config: DarrFekfConfig, batch: Batch, n: int) -> FloatArray:
-    data = np.empty((kern.N_CHAN, n))
-    for i, c in enumerate(CHANNELS):
-        name = config.channels[c]
-        try:
-            values = batch.channels[name]
-        except KeyError:
-            raise EstimatorError(f"batch has no channel {name!r}") from None
-        arr = np.asarray(values, dtype=np.float64)
-        if arr.shape != (n,):
-            raise EstimatorError(f"channel {name!r} has shape {arr.shape}, expected ({n},)")
-        data[i] = arr
-    return data
 
 
 def step(
@@ -1390,7 +1364,7 @@ def step(
             f"batch starts at t={float(t[0])!r} s, not after the last sample t={state.t_last_s!r} s"
         )
     _check_state(config, state)
-    data = _channel_matrix(config, batch, n)
+    data = channel_block(batch, [config.channels[c] for c in CHANNELS], n)
     arrays = {name: getattr(state, name).copy() for name in _ARRAYS}
     comp = config.compiled
     out = np.empty((len(names), n))

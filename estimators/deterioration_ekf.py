@@ -61,6 +61,9 @@ from estimators.base import (
     load_vector_state,
     worst_status,
 )
+from estimators.checks import finite as _finite
+from estimators.checks import non_negative as _non_negative
+from estimators.checks import positive as _positive
 from estimators.kernels import dekf_kernels as kern
 from estimators.simulators.friction_drive import FrictionDriveParams
 
@@ -232,28 +235,12 @@ def _kernel_config(config: DekfConfig) -> FloatArray:
     return cfg
 
 
-def _is_number(value: Any) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool)
 
 
-def _finite(name: str, value: Any) -> float:
-    if not _is_number(value) or not math.isfinite(float(value)):
-        raise ConfigError(f"{name}: expected a finite number, got {value!r}")
-    return float(value)
 
 
-def _positive(name: str, value: Any) -> float:
-    v = _finite(name, value)
-    if v <= 0.0:
-        raise ConfigError(f"{name}: expected a positive number, got {value!r}")
-    return v
 
 
-def _non_negative(name: str, value: Any) -> float:
-    v = _finite(name, value)
-    if v < 0.0:
-        raise ConfigError(f"{name}: expected a number >= 0, got {value!r}")
-    return v
 
 
 def _fraction(name: str, value: Any) -> float:

@@ -56,6 +56,8 @@ from estimators.base import (
     load_vector_state,
     worst_status,
 )
+from estimators.checks import finite_or_none as _finite_or_none
+from estimators.checks import is_number as _is_number
 from estimators.kernels import fakf_kernels as kern
 
 NAME = "fakf"
@@ -150,8 +152,6 @@ class FakfConfig:
         object.__setattr__(self, "kernel_vector", _kernel_config(self))
 
 
-def _is_number(value: Any) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool)
 
 
 def _positive_float(name: str, value: Any) -> float:
@@ -423,9 +423,6 @@ class ArxFit(NamedTuple):
     reason: str | None
 
 
-def _finite_or_none(value: float) -> float | None:
-    v = float(value)
-    return v if math.isfinite(v) else None
 
 
 def _fit_from_vector(fit: FloatArray) -> ArxFit:

@@ -27,6 +27,7 @@ from typing import Any, Literal
 import numpy as np
 
 from estimators.base import ConfigError, FloatArray
+from estimators.checks import finite_or_none as _finite_or_none
 from estimators.kernels import dekf_kernels as kern
 
 #: Segment length used for a constant current (any length is exact; this one keeps the
@@ -347,8 +348,6 @@ def quantile_or_none(sorted_times: FloatArray, q: float) -> float | None:
     return float(sorted_times[lo] + (h - lo) * (sorted_times[hi] - sorted_times[lo]))
 
 
-def _finite_or_none(value: float) -> float | None:
-    return float(value) if math.isfinite(value) else None
 
 
 def prognose(

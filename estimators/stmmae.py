@@ -41,6 +41,9 @@ from estimators.base import (
     dump_vector_state,
     load_vector_state,
 )
+from estimators.checks import channel_block
+from estimators.checks import finite_or_none as _finite
+from estimators.checks import is_number as _is_number
 from estimators.kernels import stmmae_kernels as kern
 from estimators.models.small_uav import reference_model
 
@@ -158,8 +161,6 @@ class StmmaeConfig:
         return (NOMINAL, *self.model.surfaces)
 
 
-def _is_number(value: Any) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool)
 
 
 def _number(name: str, value: Any, lo: float, hi: float, *, lo_open: bool = False) -> float:
@@ -617,9 +618,6 @@ def sample_output_names(config: StmmaeConfig) -> tuple[str, ...]:
     )
 
 
-def _finite(value: float) -> float | None:
-    v = float(value)
-    return v if math.isfinite(v) else None
 
 
 def _deg(value: float) -> float | None:
@@ -752,18 +750,6 @@ def _health(row: FloatArray, config: StmmaeConfig) -> HealthWindow:
     )
 
 
-def _channel_block(batch: Batch, names: Sequence[str], n: int) -> FloatArray:
-    block = np.empty((len(names), n))
-    for i, name in enumerate(names):
-        try:
-            values = batch.channels[name]
-        except KeyError:
-            raise EstimatorError(f"batch has no channel {name!r}") from None
-        arr = np.asarray(values, dtype=np.float64)
-        if arr.shape != (n,):
-            raise EstimatorError(f"channel {name!r} has shape {arr.shape}, expected ({n},)")
-        block[i] = arr
-    return block
 
 
 def step(config: StmmaeConfig, state: StmmaeState, batch: Batch) -> tuple[StmmaeState, StepOutputs]:
@@ -796,8 +782,8 @@ def step(config: StmmaeConfig, state: StmmaeState, batch: Batch) -> tuple[Stmmae
             f"batch starts at t={float(t[0])!r} s, not after the last sample t={state.t_last_s!r} s"
         )
     mdl = config.model
-    y = _channel_block(batch, [m.channel for m in mdl.measurements], n)
-    u = _channel_block(batch, [i.channel for i in mdl.inputs], n)
+    y = channel_block(batch, [m.channel for m in mdl.measurements], n)
+    u = channel_block(batch, [i.channel for i in mdl.inputs], n)
     vec = state.vector.copy()
     samples, windows, events, status = kern.bank_batch(
         config.kernel_vector, config.arrays, vec, t, y, u, config.surface_inputs
