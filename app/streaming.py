@@ -199,7 +199,8 @@ class FrameStreamer:
 
     async def _read(self, ws: ClientConnection) -> None:
         error: dict[str, Any] | None = None
-        try:
+        # A closed connection ends the loop; its close code (below) says why.
+        with contextlib.suppress(ConnectionClosed):
             async for raw in ws:
                 msg = self._decode(raw)
                 kind = msg.get("type")
@@ -218,8 +219,6 @@ class FrameStreamer:
                 elif kind == "error":
                     error = msg
                 self._changed.set()
-        except ConnectionClosed:
-            pass
         code = ws.close_code
         if error is not None or code in REFUSAL_CODES:
             err = error or {}

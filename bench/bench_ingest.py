@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
 import os
 import secrets
@@ -155,11 +156,9 @@ def _wait_ready(server: Server, timeout_s: float) -> None:
     while time.monotonic() < deadline:
         if server.process.poll() is not None:
             break
-        try:
+        with contextlib.suppress(httpx.TransportError):  # not listening yet
             if httpx.get(server.url + "/readyz", timeout=2.0).status_code == 200:
                 return
-        except httpx.TransportError:
-            pass
         time.sleep(0.2)
     tail = server.log_path.read_text(errors="replace")[-4000:]
     raise SystemExit(f"server not ready within {timeout_s:g} s; log:\n{tail}")
@@ -188,16 +187,14 @@ def tree_rss_bytes(pid: int) -> int:
             continue
         ppid = int(stat.rsplit(")", 1)[1].split()[1])
         children.setdefault(ppid, []).append(int(entry))
-    total, todo = 0, [pid]
-    while todo:
-        current = todo.pop()
-        try:
+    total, stack = 0, [pid]
+    while stack:
+        current = stack.pop()
+        with contextlib.suppress(OSError):  # the process ended meanwhile
             for line in Path(f"/proc/{current}/status").read_text().splitlines():
                 if line.startswith("VmRSS:"):
                     total += int(line.split()[1]) * 1024
-        except OSError:
-            pass
-        todo.extend(children.get(current, []))
+        stack.extend(children.get(current, []))
     return total
 
 

@@ -378,7 +378,7 @@ async def stream(ws: WebSocket, tail: str, actuator_id: str) -> None:
                 log.error("stream connection failed", exc_info=task.exception())
         reader.cancel()
     except WebSocketDisconnect:
-        pass
+        log.debug("stream peer left during the handshake messages")
     finally:
         pusher.cancel()
         hub.unsubscribe(sub)

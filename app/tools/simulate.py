@@ -17,6 +17,7 @@ three quarters of the way). Nothing but the plant's physics changes; there is no
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import os
 import threading
@@ -312,11 +313,10 @@ def wait_until_ready(
     while time.monotonic() < deadline:
         if stop_event is not None and stop_event.is_set():
             return False
-        try:
+        # Any failure (refused, 503, timeout) means "not yet".
+        with contextlib.suppress(Exception):
             client.readyz()
             return True
-        except Exception:  # any failure (refused, 503, timeout) means "not yet"
-            pass
         if stop_event is not None:
             stop_event.wait(0.25)
         else:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import secrets
@@ -100,11 +101,9 @@ def compose_server(tmp_path: Path) -> Iterator[_Server]:
         while True:
             if process.poll() is not None:
                 pytest.fail(f"server exited:\n{log_path.read_text(errors='replace')[-3000:]}")
-            try:
+            with contextlib.suppress(httpx.TransportError):  # not listening yet
                 if httpx.get(url + "/readyz", timeout=2.0).status_code == 200:
                     break
-            except httpx.TransportError:
-                pass
             if time.monotonic() > deadline:
                 pytest.fail(f"server not ready:\n{log_path.read_text(errors='replace')[-3000:]}")
             time.sleep(0.2)
