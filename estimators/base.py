@@ -27,9 +27,28 @@ from typing import Any, Literal, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, ValidationError
 
-Status = Literal["ok", "watch", "alert"]
-STATUS_ORDER: dict[str, int] = {"ok": 0, "watch": 1, "alert": 2}
+Status = Literal["learning", "ok", "watch", "alert", "unknown", "failed"]
+"""What an estimator (and, taking the worst, an actuator) reports:
+
+* ``learning``: no model yet, calibrating, or not converged; nothing to vouch for.
+* ``ok``, ``watch``, ``alert``: graded evidence against the configured levels.
+* ``unknown``: the estimator's own consistency checks reject its outputs; the reasons say which.
+  Never ``ok`` while inconsistent.
+* ``failed``: past the failure threshold; stays until a maintenance action resets the estimator.
+"""
+STATUSES: tuple[Status, ...] = ("learning", "ok", "watch", "alert", "unknown", "failed")
+# Severity for "worst first": an estimator that cannot vouch for its outputs (unknown) ranks
+# above graded concern (watch) but below positive evidence of degradation (alert, failed).
+STATUS_ORDER: dict[str, int] = {
+    "ok": 0,
+    "learning": 1,
+    "watch": 2,
+    "unknown": 3,
+    "alert": 4,
+    "failed": 5,
+}
 
 FloatArray = NDArray[np.float64]
 
@@ -187,11 +206,37 @@ class StepOutputs:
     status: StatusReport | None = None
 
 
+class EstimatorConfigModel(BaseModel):
+    """Base of every kind's public configuration model.
+
+    Each kind declares its settings as a subclass (types, defaults and units in each field's
+    description), so the service validates them with clear errors and the OpenAPI documents them.
+    Unknown keys are refused; a validated config is immutable.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+def config_error(label: str, exc: ValidationError) -> ConfigError:
+    """A :class:`ConfigError` naming each invalid field of a config, one clause per problem."""
+    parts = []
+    for err in exc.errors(include_url=False):
+        where = ".".join(str(p) for p in err["loc"]) or "config"
+        parts.append(f"{where}: {err['msg']}")
+    return ConfigError(f"{label}: " + "; ".join(parts))
+
+
 class EstimatorKind(Protocol):
-    """What a module in ``estimators`` exposes to be registered as an estimator kind."""
+    """What a module in ``estimators`` exposes to be registered as an estimator kind.
+
+    ``load_state`` reads the current ``STATE_VERSION`` and every older version the kind still
+    knows how to upgrade; it raises :class:`StateVersionError` for any other version, and the
+    service then replays the stream from its telemetry log or marks it ``failed``.
+    """
 
     NAME: str
     STATE_VERSION: int
+    CONFIG_MODEL: type[EstimatorConfigModel]
 
     def parse_config(self, raw: Mapping[str, Any]) -> Any:
         """Validate a JSON-like mapping; raise :class:`ConfigError` naming the problem."""
