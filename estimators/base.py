@@ -81,10 +81,14 @@ class Batch:
     Attributes:
         t_s: sample times in seconds, shape (n,), strictly increasing.
         channels: channel name -> values, each shape (n,), float64; NaN marks a missing sample.
+        end_of_run: the client closed the run after this batch's last sample: estimators close
+            their partial health windows (and any per-run accumulators) so every sample of a
+            closed run is scored. Split invariance holds when the marker rides on the last batch.
     """
 
     t_s: FloatArray
     channels: Mapping[str, FloatArray]
+    end_of_run: bool = False
 
     def __len__(self) -> int:
         return int(self.t_s.shape[0])
