@@ -4,16 +4,21 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import socket
 import sys
 import threading
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from app.config import Settings
 
 DEMO_OPERATOR = "demo"
 
 
-def _settings():  # type: ignore[no-untyped-def]
+def _settings() -> Settings:
     from app.config import Settings
 
     return Settings()
@@ -42,8 +47,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     url = f"http://{host}:{port}"
     stop = threading.Event()
     if args.demo:
+        from app.auth.service import SCOPES, create_key, ensure_key
         from app.db import Database
-        from app.security import SCOPES, create_key, ensure_key
 
         db = Database(s.database_url)
         with db.write() as session:
@@ -64,7 +69,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         port=port,
         log_level=args.log_level,
         ws_max_size=s.ws_max_frame_bytes,
-        timeout_graceful_shutdown=s.shutdown_timeout_s,
+        timeout_graceful_shutdown=math.ceil(s.shutdown_timeout_s),
     )
     try:
         uvicorn.Server(config).run(sockets=[_listen(host, port, s.socket_send_buffer_bytes)])
@@ -98,11 +103,8 @@ def _demo_feeder(url: str, key: str, stop: threading.Event) -> None:
 
 
 def cmd_keys(args: argparse.Namespace) -> int:
-    from sqlalchemy import select
-
+    from app.auth.service import create_key, list_keys, parse_scopes, revoke_key
     from app.db import Database
-    from app.models import ApiKey, Operator, utcnow
-    from app.security import create_key, parse_scopes
 
     db = Database(_settings().database_url)
     try:
@@ -114,25 +116,42 @@ def cmd_keys(args: argparse.Namespace) -> int:
                       f"with scopes {row.scopes}", file=sys.stderr)
         elif args.keys_cmd == "list":
             with db.read() as s:
-                for key, op in s.execute(
-                    select(ApiKey, Operator.name).join(Operator).order_by(ApiKey.id)
-                ):
+                for key, op in list_keys(s):
                     state = "revoked" if key.revoked_at else "active"
                     print(f"{key.id}\t{op}\t{key.prefix}...\t{key.scopes}\t{state}\t{key.name}")
         elif args.keys_cmd == "revoke":
             with db.write() as s:
-                key = s.get(ApiKey, args.id)
-                if key is None:
+                if not revoke_key(s, args.id):
                     print(f"no key {args.id}", file=sys.stderr)
                     return 1
-                key.revoked_at = utcnow()
                 print(f"revoked key {args.id}")
     finally:
         db.dispose()
     return 0
 
 
-def openapi_document() -> dict:  # type: ignore[type-arg]
+def cmd_streams(args: argparse.Namespace) -> int:
+    from app.db import Database
+    from app.processing.service import failed_streams, reset_failed
+
+    db = Database(_settings().database_url)
+    try:
+        if args.streams_cmd == "failed":
+            with db.read() as s:
+                for operator, tail, actuator_id, reason in failed_streams(s):
+                    print(f"{operator}\t{tail}\t{actuator_id}\t{reason}")
+        elif args.streams_cmd == "reset":
+            with db.write() as s:
+                if not reset_failed(s, args.operator, args.tail, args.actuator_id):
+                    print(f"{args.tail}/{args.actuator_id} is not marked failed", file=sys.stderr)
+                    return 1
+            print(f"reset {args.tail}/{args.actuator_id}; the processor applies it again")
+    finally:
+        db.dispose()
+    return 0
+
+
+def openapi_document() -> dict[str, Any]:
     from app.config import Settings
     from app.main import create_app
 
@@ -175,6 +194,15 @@ def build_parser() -> argparse.ArgumentParser:
     kr = ks.add_parser("revoke", help="revoke a key by id")
     kr.add_argument("id", type=int)
     sp.set_defaults(func=cmd_keys)
+
+    sp = sub.add_parser("streams", help="streams marked failed (no longer applied)")
+    ss = sp.add_subparsers(dest="streams_cmd", required=True)
+    ss.add_parser("failed", help="list failed streams with the reason")
+    sr = ss.add_parser("reset", help="clear a stream's failed mark so it is applied again")
+    sr.add_argument("--operator", required=True)
+    sr.add_argument("tail")
+    sr.add_argument("actuator_id")
+    sp.set_defaults(func=cmd_streams)
 
     sp = sub.add_parser("export-openapi", help="write the OpenAPI document")
     sp.add_argument("--output", "-o", default="openapi/openapi.json", help="file, or - for stdout")

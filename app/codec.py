@@ -16,7 +16,7 @@ def encode_columns(columns: Mapping[str, np.ndarray]) -> bytes:
     sink = pa.BufferOutputStream()
     with pa.ipc.new_stream(sink, table.schema, options=_WRITE_OPTIONS) as writer:
         writer.write_table(table)
-    return sink.getvalue().to_pybytes()
+    return bytes(sink.getvalue().to_pybytes())
 
 
 def decode_columns(data: bytes) -> dict[str, np.ndarray]:

@@ -14,7 +14,6 @@ class Settings(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="FLEETHEALTH_", extra="ignore")
 
-    environment: Literal["development", "production", "test"] = "development"
     database_url: str = "sqlite:///./data/fleethealth.db"
     host: str = "127.0.0.1"
     port: int = 8000
@@ -27,6 +26,12 @@ class Settings(BaseSettings):
     processor_enabled: bool = True
     processor_scan_interval_s: float = Field(default=2.0, gt=0)
     processor_max_samples_per_txn: int = Field(default=1_000_000, gt=0)
+    processor_max_batches_per_txn: int = Field(default=256, gt=0)
+    # A stream whose apply raises is retried after processor_retry_backoff_s, doubling per
+    # attempt up to processor_retry_backoff_max_s; after processor_max_attempts it is failed.
+    processor_max_attempts: int = Field(default=5, gt=0)
+    processor_retry_backoff_s: float = Field(default=1.0, gt=0)
+    processor_retry_backoff_max_s: float = Field(default=60.0, gt=0)
     store_sample_outputs: bool = True
     log_retention_s: float | None = Field(default=None, gt=0)
     warm_kernels: bool = True

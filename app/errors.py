@@ -63,8 +63,10 @@ class InvalidConfig(DomainError):
     status_code = 422
 
 
-class NotReady(DomainError):
-    status_code = 503
+class StreamFailed(DomainError):
+    """The stream is marked failed: its batches are logged but no longer applied."""
+
+    status_code = 409
 
 
 ERROR_SCHEMA = {

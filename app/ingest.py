@@ -31,9 +31,12 @@ MAX_BATCH_ID_LEN = 128
 
 @dataclass(frozen=True)
 class ParsedBatch:
+    """A validated block of samples; ``end_of_run`` marks the last batch of a run."""
+
     batch_id: str
     t_s: np.ndarray
     channels: dict[str, np.ndarray]
+    end_of_run: bool = False
 
     @property
     def n_samples(self) -> int:
@@ -46,6 +49,10 @@ class ParsedBatch:
         for name in sorted(self.channels):
             h.update(name.encode())
             h.update(np.ascontiguousarray(self.channels[name]).tobytes())
+        if self.end_of_run:
+            # Part of the batch's identity; only when set, so digests of batches logged before
+            # the marker existed stay the same.
+            h.update(b"\x00end_of_run")
         return h.hexdigest()
 
 
@@ -54,6 +61,7 @@ class TimeParams:
     batch_id: str | None
     t0: float | None
     sample_rate_hz: float | None
+    end_of_run: bool = False
 
 
 def media_type(content_type: str | None) -> str:
@@ -71,13 +79,22 @@ def parse_body(
 ) -> ParsedBatch:
     if not body:
         raise InvalidBatch("empty body")
+    end_of_run = params.end_of_run
     if mt in JSON_TYPES:
-        batch_id, t_s, columns = _parse_json(body, params)
+        doc = _json_object(body)
+        batch_id, t_s, columns = _parse_json_doc(doc, params)
+        end_of_run = _end_of_run(doc.get("end_of_run", end_of_run))
     elif mt in CSV_TYPES:
         batch_id, t_s, columns = _parse_table(_read_csv(body), params)
     else:
         batch_id, t_s, columns = _parse_table(_read_arrow(body), params)
-    return _validate(batch_id, t_s, columns, expected_channels, max_samples)
+    return _validate(batch_id, t_s, columns, expected_channels, max_samples, end_of_run)
+
+
+def _end_of_run(value: Any) -> bool:
+    if not isinstance(value, bool):
+        raise InvalidBatch("end_of_run must be true or false")
+    return value
 
 
 def _batch_id(value: Any, *, frame: bool = False) -> str:
@@ -122,9 +139,9 @@ def parse_frame(
     """A WebSocket frame of samples -> (client_seq, batch).
 
     Text frames are JSON: ``{"type": "samples", "client_seq": n, "t": [...] | "t0" +
-    "sample_rate_hz", "channels": {...}}``. Binary frames are an Arrow IPC stream whose schema
-    metadata holds ``client_seq`` (and ``t0`` / ``sample_rate_hz`` when there is no ``t``
-    column).
+    "sample_rate_hz", "channels": {...}, "end_of_run": false}``. Binary frames are an Arrow IPC
+    stream whose schema metadata holds ``client_seq`` (and ``t0`` / ``sample_rate_hz`` when
+    there is no ``t`` column, ``end_of_run`` = ``"true"`` on the last frame of a run).
     """
     if isinstance(data, str):
         try:
@@ -140,6 +157,7 @@ def parse_frame(
         if "batch_id" in body:
             raise InvalidBatch("frames carry client_seq, not batch_id")
         batch_id, t_s, columns = _parse_json_doc(body, TimeParams(frame_batch_id(seq), None, None), frame=True)
+        end_of_run = _end_of_run(body.get("end_of_run", False))
     else:
         table = _read_arrow(data)
         meta = {k.decode(): v.decode() for k, v in (table.schema.metadata or {}).items()}
@@ -147,13 +165,14 @@ def parse_frame(
             seq = _client_seq(int(meta["client_seq"]))
             t0 = float(meta["t0"]) if "t0" in meta else None
             rate = float(meta["sample_rate_hz"]) if "sample_rate_hz" in meta else None
+            end_of_run = meta.get("end_of_run", "false").lower() == "true"
         except KeyError:
             raise InvalidBatch("the Arrow schema metadata must hold client_seq") from None
         except ValueError as exc:
             raise InvalidBatch(f"bad Arrow schema metadata: {exc}") from None
         table = table.replace_schema_metadata(None)
         batch_id, t_s, columns = _parse_table(table, TimeParams(frame_batch_id(seq), t0, rate), frame=True)
-    return seq, _validate(batch_id, t_s, columns, expected_channels, max_samples)
+    return seq, _validate(batch_id, t_s, columns, expected_channels, max_samples, end_of_run)
 
 
 def _to_float_array(values: Any, name: str) -> np.ndarray:
@@ -177,10 +196,10 @@ def _arrow_to_float(arr: pa.Array | pa.ChunkedArray, name: str) -> np.ndarray:
     if isinstance(arr, pa.ChunkedArray):
         arr = arr.combine_chunks()
     # Read-only views are fine: nothing downstream writes into the samples.
-    return arr.to_numpy(zero_copy_only=False)
+    return np.asarray(arr.to_numpy(zero_copy_only=False))
 
 
-def _parse_json(body: bytes, params: TimeParams) -> tuple[str, np.ndarray | None, dict[str, np.ndarray]]:
+def _json_object(body: bytes) -> dict[str, Any]:
     try:
         doc = orjson.loads(body)
     except orjson.JSONDecodeError as exc:
@@ -188,13 +207,13 @@ def _parse_json(body: bytes, params: TimeParams) -> tuple[str, np.ndarray | None
                            f"for a missing sample): {exc}") from None
     if not isinstance(doc, dict):
         raise InvalidBatch("body must be a JSON object with batch_id and channels")
-    return _parse_json_doc(doc, params)
+    return doc
 
 
 def _parse_json_doc(
     doc: dict[str, Any], params: TimeParams, *, frame: bool = False
 ) -> tuple[str, np.ndarray | None, dict[str, np.ndarray]]:
-    unknown = set(doc) - {"batch_id", "t", "t0", "sample_rate_hz", "channels"}
+    unknown = set(doc) - {"batch_id", "t", "t0", "sample_rate_hz", "channels", "end_of_run"}
     if unknown:
         raise InvalidBatch(f"unknown fields: {', '.join(sorted(unknown))}")
     batch_id = _batch_id(doc.get("batch_id", params.batch_id), frame=frame)
@@ -269,6 +288,7 @@ def _validate(
     columns: Mapping[str, np.ndarray],
     expected: Sequence[str],
     max_samples: int,
+    end_of_run: bool = False,
 ) -> ParsedBatch:
     assert t_s is not None
     unknown = sorted(set(columns) - set(expected))
@@ -302,4 +322,9 @@ def _validate(
             k = int(np.argmax(bad))
             raise InvalidBatch(f"channel {name!r} holds an infinite value at index {k}")
     ordered = {c: np.ascontiguousarray(columns[c], dtype=np.float64) for c in expected}
-    return ParsedBatch(batch_id=batch_id, t_s=np.ascontiguousarray(t_s, dtype=np.float64), channels=ordered)
+    return ParsedBatch(
+        batch_id=batch_id,
+        t_s=np.ascontiguousarray(t_s, dtype=np.float64),
+        channels=ordered,
+        end_of_run=end_of_run,
+    )

@@ -10,15 +10,25 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 
 from app import __version__
-from app.api import fleet, health, stream, system, telemetry
+from app.auth import router as auth_router
+from app.auth.service import SCOPES, ensure_key
 from app.config import Settings, get_settings
 from app.db import Database
 from app.errors import install_handlers
-from app.processing import Processor
-from app.security import SCOPES, ensure_key
+from app.faults import router as faults_router
+from app.fleet import router as fleet_router
+from app.health import router as health_router
+from app.processing.processor import Processor
+from app.system import router as system_router
+from app.telemetry import router as telemetry_router
+from app.websocket import router as websocket_router
 from estimators.registry import ESTIMATORS
 
 log = logging.getLogger("fleethealth")
+
+# At shutdown, how long to wait for a kernel warm-up still running (a first numba compile of
+# every kernel takes tens of seconds on a cold cache).
+WARM_JOIN_TIMEOUT_S = 60.0
 
 DESCRIPTION = """\
 Health monitoring of aircraft actuators across a fleet: telemetry ingest per tail number,
@@ -31,8 +41,8 @@ Authenticate with `Authorization: Bearer <key>`. Errors have one shape:
 
 def warm_kernels() -> None:
     """Compile (or load from numba's cache) every estimator kernel once."""
-    for module in ESTIMATORS.values():
-        module.warm_up()
+    for kind in ESTIMATORS.values():
+        kind.warm_up()
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -65,7 +75,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         try:
             yield
         finally:
-            warm.join(timeout=60)
+            warm.join(timeout=WARM_JOIN_TIMEOUT_S)
             processor.stop()
             db.dispose()
 
@@ -76,9 +86,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         lifespan=lifespan,
     )
     install_handlers(app)
-    app.include_router(system.router)
-    app.include_router(fleet.router)
-    app.include_router(telemetry.router)
-    app.include_router(health.router)
-    app.include_router(stream.router)
+    for module in (
+        system_router,
+        fleet_router,
+        auth_router,
+        telemetry_router,
+        health_router,
+        faults_router,
+        websocket_router,
+    ):
+        app.include_router(module.router)
     return app

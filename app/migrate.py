@@ -12,7 +12,8 @@ from sqlalchemy import Engine
 
 from app.db import normalize_url
 
-MIGRATIONS_DIR = Path(__file__).resolve().parent.parent / "migrations"
+# Inside the package, so an installed wheel migrates too; the config is built here, in code.
+MIGRATIONS_DIR = Path(__file__).resolve().parent / "migrations"
 
 
 def alembic_config(url: str) -> Config:

@@ -9,6 +9,7 @@ from typing import Any
 from sqlalchemy import (
     JSON,
     BigInteger,
+    Boolean,
     DateTime,
     Float,
     ForeignKey,
@@ -18,6 +19,7 @@ from sqlalchemy import (
     String,
     TypeDecorator,
     UniqueConstraint,
+    false,
 )
 from sqlalchemy.orm import Mapped, mapped_column, relationship
 
@@ -107,7 +109,10 @@ class Stream(Base):
     )
     last_applied_seq: Mapped[int] = mapped_column(BigInteger, default=0)
     last_applied_t_s: Mapped[float | None] = mapped_column(Float, nullable=True)
-    status: Mapped[str] = mapped_column(String(8), default="ok")
+    # A new stream has nothing to vouch for: learning until its estimators report.
+    status: Mapped[str] = mapped_column(String(8), default="learning")
+    # Why the stream is no longer applied (status failed); None while it is.
+    failure: Mapped[str | None] = mapped_column(String(2000), nullable=True)
     updated_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     # The latest RUL prognosis of any estimator (the smallest 5 % quantile), for the fleet board.
     rul_t_s: Mapped[float | None] = mapped_column(Float, nullable=True)
@@ -126,7 +131,7 @@ class EstimatorState(Base):
     config: Mapped[dict[str, Any]] = mapped_column(JSON)
     state: Mapped[bytes | None] = mapped_column(LargeBinary, nullable=True)
     applied_seq: Mapped[int] = mapped_column(BigInteger, default=0)
-    status: Mapped[str] = mapped_column(String(8), default="ok")
+    status: Mapped[str] = mapped_column(String(8), default="learning")
     reasons: Mapped[list[str]] = mapped_column(JSON, default=list)
     # The estimator's latest diagnostic picture (fault isolation), replaced on each batch.
     diagnosis_t_s: Mapped[float | None] = mapped_column(Float, nullable=True)
@@ -151,6 +156,8 @@ class TelemetryBatch(Base):
     t_last_s: Mapped[float] = mapped_column(Float)
     received_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     applied_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    # The client closed the run after this batch (part of the batch's identity).
+    end_of_run: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
     payload: Mapped[bytes | None] = mapped_column(LargeBinary, nullable=True)
 
 

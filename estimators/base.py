@@ -69,11 +69,6 @@ class OutOfOrderError(EstimatorError):
     """A batch starts at or before the time of the state's last sample (the service answers 409)."""
 
 
-class IdentificationError(EstimatorError):
-    """Model identification failed (unstable fit, too little excitation); reported, not raised
-    to the client, since it happens while a stream is being applied."""
-
-
 @dataclass(frozen=True)
 class Batch:
     """A block of consecutive samples of one stream.

@@ -20,7 +20,6 @@ def make_settings(db_url: str, **kw: Any) -> Settings:
     return Settings(
         database_url=db_url,
         bootstrap_admin_key=ADMIN_KEY,
-        environment="test",
         processor_scan_interval_s=0.2,
         **kw,
     )

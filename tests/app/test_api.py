@@ -11,11 +11,11 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import select
 
+from app.auth.service import create_key
 from app.cli import openapi_document
 from app.db import Database
 from app.main import create_app
 from app.models import ApiKey
-from app.security import create_key
 from tests.app.conftest import ADMIN_KEY, Api, arrow_bytes, make_settings
 from tests.conftest import make_series
 

@@ -10,14 +10,15 @@ import numpy as np
 import pytest
 
 from app.errors import InvalidBatch
-from app.hub import Hub, StreamMeta, fleet_events, public
 from app.ingest import UnsupportedFrame, client_seq_of, frame_batch_id, parse_frame
-from app.processing import AppliedBatch, ApplyResult
+from app.processing import ApplyResult
+from app.processing.messages import BatchResult, EstimatorResult
 from app.streaming import encode_frame
+from app.websocket.hub import Hub, StreamMeta, fleet_events, public
 
 
-def _applied(seq: int, status: str, events: list[dict] | None = None) -> AppliedBatch:  # type: ignore[type-arg]
-    return AppliedBatch(
+def _applied(seq: int, status: str, events: list[dict] | None = None) -> BatchResult:  # type: ignore[type-arg]
+    return BatchResult(
         seq=seq,
         batch_id=f"b{seq}",
         t_first_s=float(seq),
@@ -25,8 +26,8 @@ def _applied(seq: int, status: str, events: list[dict] | None = None) -> Applied
         n_samples=10,
         status=status,
         estimators={
-            "est": {"status": status, "reasons": [f"r{seq}"] if status != "ok" else [], "last": {"x": 1.0},
-                    "health": [], "events": events or [], "rul": [], "diagnosis": None}
+            "est": EstimatorResult(status=status, reasons=[f"r{seq}"] if status != "ok" else [], last={"x": 1.0},
+                                   health=[], events=events or [], rul=[], diagnosis=None)
         },
     )
 

@@ -15,9 +15,9 @@ import pytest
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
+from app.auth.service import create_key
 from app.client import FleetHealthClient
 from app.db import Database
-from app.security import create_key
 from app.streaming import FrameStreamer, StreamRefused, encode_frame, frames_of, ws_url
 from tests.conftest import make_series
 from tests.e2e.conftest import LiveServer
@@ -361,7 +361,7 @@ def test_fleet_events_are_filtered_by_operator_and_tail(live_server: LiveServer)
             return await collect(only_a, 1), await collect(everything, 2), await collect(stranger, 0)
 
     a, both, none = asyncio.run(run())
-    assert [(e["type"], e["tail"], e["from"], e["to"]) for e in a] == [("status_changed", "FA", "ok", "alert")]
+    assert [(e["type"], e["tail"], e["from"], e["to"]) for e in a] == [("status_changed", "FA", "learning", "alert")]
     assert sorted(e["tail"] for e in both) == ["FA", "FB"]
     assert all(e["type"] == "status_changed" and e["reasons"] for e in both)
     assert none == []

@@ -1,1 +1,0 @@
-"""HTTP routers: they speak HTTP only and leave decisions to the services."""

@@ -1,0 +1,1 @@
+"""API keys and operators: who calls, for which operator, with which scopes."""

@@ -1,0 +1,100 @@
+"""API keys: random bearer tokens, stored as SHA-256 digests, owned by an operator, with scopes."""
+
+from __future__ import annotations
+
+import hashlib
+import secrets
+from dataclasses import dataclass
+
+from sqlalchemy.orm import Session
+
+from app.auth import repository
+from app.errors import Forbidden, InvalidConfig, Unauthorized
+from app.models import ApiKey, Operator
+
+SCOPES = ("ingest", "read", "admin")
+KEY_PREFIX = "fh_"
+# Characters of the plaintext key kept in clear, so an operator can tell keys apart.
+KEY_PREFIX_SHOWN = 10
+
+
+@dataclass(frozen=True)
+class Principal:
+    operator_id: int
+    operator: str
+    scopes: frozenset[str]
+    key_id: int
+
+    def require(self, scope: str) -> None:
+        if scope not in self.scopes and "admin" not in self.scopes:
+            raise Forbidden(f"this API key lacks the {scope!r} scope")
+
+
+def generate_key() -> str:
+    return KEY_PREFIX + secrets.token_urlsafe(32)
+
+
+def hash_key(key: str) -> str:
+    # Keys carry 256 random bits, so a plain digest is enough (no password stretching needed).
+    return hashlib.sha256(key.encode()).hexdigest()
+
+
+def parse_scopes(scopes: str | list[str] | tuple[str, ...]) -> list[str]:
+    items = [s.strip() for s in (scopes.split(",") if isinstance(scopes, str) else scopes)]
+    items = [s for s in items if s]
+    bad = [s for s in items if s not in SCOPES]
+    if bad or not items:
+        raise InvalidConfig(f"scopes must be a non-empty subset of {', '.join(SCOPES)}; got {items}")
+    return sorted(set(items))
+
+
+def get_or_create_operator(session: Session, name: str) -> Operator:
+    return repository.operator_by_name(session, name) or repository.add_operator(session, name)
+
+
+def create_key(
+    session: Session, operator: str, scopes: list[str], name: str = "", key: str | None = None
+) -> tuple[ApiKey, str]:
+    """Create a key (random unless ``key`` is given); returns the row and the plaintext."""
+    op = get_or_create_operator(session, operator)
+    plaintext = key or generate_key()
+    row = ApiKey(
+        operator_id=op.id,
+        name=name,
+        prefix=plaintext[:KEY_PREFIX_SHOWN],
+        key_hash=hash_key(plaintext),
+        scopes=",".join(parse_scopes(scopes)),
+    )
+    return repository.add_key(session, row), plaintext
+
+
+def ensure_key(session: Session, operator: str, key: str, scopes: list[str], name: str) -> None:
+    """Make ``key`` valid for ``operator`` (idempotent; used for the bootstrap admin key)."""
+    if repository.key_by_hash(session, hash_key(key)) is None:
+        create_key(session, operator, scopes, name=name, key=key)
+
+
+def authenticate(session: Session, authorization: str | None) -> Principal:
+    if not authorization:
+        raise Unauthorized("missing Authorization header: send 'Authorization: Bearer <key>'")
+    scheme, _, token = authorization.partition(" ")
+    if scheme.lower() != "bearer" or not token.strip():
+        raise Unauthorized("Authorization must be 'Bearer <key>'")
+    found = repository.active_key_with_operator(session, hash_key(token.strip()))
+    if found is None:
+        raise Unauthorized("unknown or revoked API key")
+    key, op_name = found
+    return Principal(
+        operator_id=key.operator_id,
+        operator=op_name,
+        scopes=frozenset(key.scopes.split(",")),
+        key_id=key.id,
+    )
+
+
+def list_keys(session: Session) -> list[tuple[ApiKey, str]]:
+    return repository.keys_with_operators(session)
+
+
+def revoke_key(session: Session, key_id: int) -> bool:
+    return repository.revoke_key(session, key_id)

@@ -1,0 +1,1 @@
+"""Fault isolation: diagnoses, fault detections and clearances, faults still open."""

@@ -1,0 +1,1 @@
+"""Aircraft, actuators, actuator kinds and the fleet board."""

@@ -1,0 +1,1 @@
+"""Health indicators, per-sample outputs, estimator events and remaining useful life."""

@@ -1,0 +1,249 @@
+"""The processing rules, each inside the caller's transaction: apply a stream's pending
+batches, replay one estimator from the log after its state could not be read, and read applied
+results back."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+from sqlalchemy.orm import Session
+
+from app.auth import repository as auth_repository
+from app.codec import decode_columns
+from app.errors import NotFound
+from app.fleet import service as fleet
+from app.ingest import TIME_COLUMN
+from app.models import (
+    EstimatorEventRow,
+    HealthWindowRow,
+    RulEstimateRow,
+    SampleOutputRow,
+    Stream,
+    TelemetryBatch,
+    utcnow,
+)
+from app.processing import repository
+from app.processing.messages import (
+    BatchResult,
+    EstimatorResult,
+    event_public,
+    finite_or_none,
+    rul_public,
+    window_public,
+)
+from app.processing.orchestration import (
+    LoggedBatch,
+    fresh_runner,
+    make_runner,
+    most_urgent_rul,
+    run_estimators,
+)
+from estimators.base import Batch, worst_status
+
+# Batches read per query, when applying and when replaying the log.
+MAX_BATCHES_PER_QUERY = 256
+
+
+@dataclass
+class ApplyResult:
+    """One committed apply of a stream: for metrics, waiters and subscribers."""
+
+    batches: int
+    samples: int
+    last_applied_seq: int
+    actuator_pk: int = 0
+    applied: list[BatchResult] = field(default_factory=list)
+    # Status before and after this transaction (fleet subscribers hear about changes).
+    status_before: str = "learning"
+    status_after: str = "learning"
+
+
+def decode(row: TelemetryBatch) -> LoggedBatch:
+    if row.payload is None:
+        raise LookupError(f"batch seq {row.seq} has no payload in the log")
+    cols = decode_columns(row.payload)
+    t_s = cols.pop(TIME_COLUMN)
+    return LoggedBatch(
+        seq=row.seq,
+        batch_id=row.batch_id,
+        t_first_s=row.t_first_s,
+        t_last_s=row.t_last_s,
+        n_samples=row.n_samples,
+        batch=Batch(t_s=t_s, channels=cols, end_of_run=row.end_of_run),
+    )
+
+
+def _set_rul(stream: Stream, rul_rows: Sequence[dict[str, object]]) -> None:
+    best = most_urgent_rul(rul_rows)
+    if best is not None:
+        stream.rul_t_s = best["t_s"]
+        stream.rul_q05_s = best["q05_s"]
+        stream.rul_q50_s = best["q50_s"]
+
+
+def apply_pending(
+    session: Session,
+    actuator_pk: int,
+    *,
+    max_samples: int,
+    store_outputs: bool,
+    is_sqlite: bool,
+    max_batches: int = MAX_BATCHES_PER_QUERY,
+) -> ApplyResult | None:
+    """Apply the next pending batches of one stream inside the caller's transaction: claim,
+    load, run the estimators (pure), store outputs, states and the applied mark together.
+
+    Returns None when another worker holds the stream, the stream is failed, or nothing is
+    pending.
+
+    Raises:
+        StateUnreadable: an estimator's state has a version this build cannot read (nothing
+            is written; the caller replays that estimator or marks the stream failed).
+    """
+    stream = repository.claim(session, actuator_pk, is_sqlite=is_sqlite)
+    if stream is None or stream.failure is not None:
+        return None
+    pending = repository.pending_batches(session, stream, max_samples=max_samples, max_batches=max_batches)
+    if not pending:
+        return None
+    est_rows = repository.estimators(session, actuator_pk)
+    runners = [
+        make_runner(er.estimator, er.config, er.state, er.status, er.reasons, er.diagnosis_t_s, er.diagnosis)
+        for er in est_rows
+    ]
+    step = run_estimators(actuator_pk, runners, [decode(b) for b in pending], store_outputs=store_outputs)
+
+    now = utcnow()
+    repository.insert_rows(session, step.rows)
+    for row in pending:
+        row.applied_at = now
+    for er, runner in zip(est_rows, step.runners, strict=True):
+        er.state = runner.kind.dump_state(runner.state)
+        er.applied_seq = pending[-1].seq
+        er.status, er.reasons = runner.status, list(runner.reasons)
+        er.diagnosis_t_s, er.diagnosis = runner.diagnosis_t_s, runner.diagnosis
+    status_before = stream.status
+    _set_rul(stream, step.rows.rul)
+    stream.last_applied_seq = pending[-1].seq
+    stream.last_applied_t_s = pending[-1].t_last_s
+    stream.status = step.status
+    stream.updated_at = now
+    session.flush()
+    return ApplyResult(
+        batches=len(pending),
+        samples=sum(b.n_samples for b in pending),
+        last_applied_seq=stream.last_applied_seq,
+        actuator_pk=actuator_pk,
+        applied=step.results,
+        status_before=status_before,
+        status_after=stream.status,
+    )
+
+
+def replay_estimator(
+    session: Session, actuator_pk: int, estimator: str, *, store_outputs: bool, is_sqlite: bool
+) -> bool:
+    """Re-initialise one estimator of a stream and replay every applied batch through it, in
+    the caller's transaction; its earlier outputs are replaced by the replay's.
+
+    Used when the estimator's stored state has a version this build cannot read: the outputs
+    then are those of an uninterrupted run with this build. False (nothing changed) when the
+    log no longer holds every batch from the first (retention dropped payloads), or another
+    worker holds the stream.
+    """
+    stream = repository.claim(session, actuator_pk, is_sqlite=is_sqlite)
+    if stream is None:
+        return False
+    upto = stream.last_applied_seq
+    if not repository.log_holds_from_first(session, actuator_pk, upto):
+        return False
+    est_rows = repository.estimators(session, actuator_pk)
+    er = next(r for r in est_rows if r.estimator == estimator)
+    repository.delete_outputs(session, actuator_pk, estimator)
+    runner = fresh_runner(estimator, er.config)
+    rul_rows: list[dict[str, object]] = []
+    for part in repository.logged_batches(session, actuator_pk, upto, MAX_BATCHES_PER_QUERY):
+        step = run_estimators(actuator_pk, [runner], [decode(b) for b in part], store_outputs=store_outputs)
+        repository.insert_rows(session, step.rows)
+        rul_rows.extend(step.rows.rul)
+        runner = step.runners[0]
+    er.state = runner.kind.dump_state(runner.state)
+    er.applied_seq = upto
+    er.status, er.reasons = runner.status, list(runner.reasons)
+    er.diagnosis_t_s, er.diagnosis = runner.diagnosis_t_s, runner.diagnosis
+    _set_rul(stream, rul_rows)
+    stream.status = worst_status([r.status for r in est_rows])
+    stream.updated_at = utcnow()
+    session.flush()
+    return True
+
+
+def applied_results(session: Session, actuator_pk: int, seqs: list[int]) -> list[BatchResult]:
+    """What applying each of ``seqs`` produced, read back from the store (when the live push
+    was missed: another process applied the batch, or a subscriber queue overflowed).
+
+    The same message as a live result, except that ``status`` is each estimator's status now,
+    ``last`` holds the last per-sample outputs only when they are stored, and ``diagnosis`` is
+    None (only the latest diagnosis is kept).
+    """
+    if not seqs:
+        return []
+    batches = repository.batches_by_seq(session, actuator_pk, seqs)
+    if not batches:
+        return []
+    ests = repository.estimators(session, actuator_pk)
+    lo, hi = min(batches), max(batches)
+    windows, evs, ruls, outs = (
+        repository.outputs_by_seq(session, model, actuator_pk, lo, hi)
+        for model in (HealthWindowRow, EstimatorEventRow, RulEstimateRow, SampleOutputRow)
+    )
+    status = worst_status([er.status for er in ests])
+    results = []
+    for seq in sorted(batches):
+        b = batches[seq]
+        per: dict[str, EstimatorResult] = {}
+        for er in ests:
+            key = (seq, er.estimator)
+            last: dict[str, float | None] = {}
+            for o in outs.get(key, [])[-1:]:
+                cols = decode_columns(o.payload)
+                last = {k: finite_or_none(float(v[-1])) for k, v in cols.items() if k != TIME_COLUMN and len(v)}
+            per[er.estimator] = EstimatorResult(
+                status=er.status,
+                reasons=list(er.reasons),
+                last=last,
+                health=[window_public(w) for w in windows.get(key, [])],
+                events=[event_public(e) for e in evs.get(key, [])],
+                rul=[rul_public(r) for r in ruls.get(key, [])],
+                diagnosis=None,
+            )
+        results.append(
+            BatchResult(
+                seq=seq,
+                batch_id=b.batch_id,
+                t_first_s=b.t_first_s,
+                t_last_s=b.t_last_s,
+                n_samples=b.n_samples,
+                status=status,
+                estimators=per,
+            )
+        )
+    return results
+
+
+
+def failed_streams(session: Session) -> list[tuple[str, str, str, str]]:
+    """(operator, tail, actuator id, reason) of every stream marked failed."""
+    return repository.failed_streams(session)
+
+
+def reset_failed(session: Session, operator: str, tail: str, actuator_id: str) -> bool:
+    """Clear the failed mark of a stream (after its cause is fixed): the processor applies it
+    again, and marks it again if the cause remains. False when it was not marked."""
+    op = auth_repository.operator_by_name(session, operator)
+    if op is None:
+        raise NotFound(f"operator {operator!r} not found")
+    act = fleet.get_actuator(session, op.id, tail, actuator_id)
+    status = worst_status([er.status for er in repository.estimators(session, act.id)])
+    return repository.clear_failure(session, act.id, status)

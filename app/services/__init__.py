@@ -1,2 +1,0 @@
-"""Business rules. Services take a session, query through SQLAlchemy and flush; the caller's
-unit of work commits."""

@@ -1,0 +1,1 @@
+"""The telemetry log: durable, idempotent, ordered append of batches (REST and WebSocket)."""

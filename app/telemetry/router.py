@@ -1,0 +1,139 @@
+"""Telemetry ingest over HTTP: the durable, idempotent entry of the data flow."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Header, Query, Request
+from fastapi.responses import Response
+from prometheus_client import Counter
+from starlette.concurrency import run_in_threadpool
+
+from app.deps import DbDep, IngestDep, ProcessorDep, SettingsDep
+from app.errors import DomainError, PayloadTooLarge, StreamFailed, error_responses, json_response
+from app.ingest import TimeParams, media_type
+from app.telemetry import service
+
+router = APIRouter(prefix="/v1", tags=["telemetry"])
+
+BATCHES_LOGGED = Counter("fleethealth_batches_logged_total", "Batches committed to the telemetry log")
+SAMPLES_LOGGED = Counter("fleethealth_samples_logged_total", "Samples committed to the telemetry log")
+BATCHES_REPLAYED = Counter("fleethealth_batches_replayed_total", "Retries answered from the log")
+BATCHES_REJECTED = Counter("fleethealth_batches_rejected_total", "Rejected batches", ["error"])
+
+_NUM_LIST = {"type": "array", "items": {"type": ["number", "null"]}}
+_BODY_DOC: dict[str, Any] = {
+    "requestBody": {
+        "required": True,
+        "content": {
+            "application/json": {
+                "schema": {
+                    "type": "object",
+                    "required": ["batch_id", "channels"],
+                    "properties": {
+                        "batch_id": {"type": "string", "maxLength": 128},
+                        "t": {**_NUM_LIST, "description": "Sample times in seconds, strictly increasing"},
+                        "t0": {"type": "number", "description": "Time of the first sample (with sample_rate_hz)"},
+                        "sample_rate_hz": {"type": "number", "exclusiveMinimum": 0},
+                        "channels": {
+                            "type": "object",
+                            "additionalProperties": _NUM_LIST,
+                            "description": "Channel name -> values; null = no sample at that time",
+                        },
+                        "end_of_run": {
+                            "type": "boolean",
+                            "default": False,
+                            "description": "This batch ends a run (the estimators close their windows)",
+                        },
+                    },
+                }
+            },
+            "text/csv": {
+                "schema": {"type": "string"},
+                "example": "t,current,voltage\n0.00,0.31,-8.85\n0.01,0.36,\n",
+            },
+            "application/vnd.apache.arrow.stream": {
+                "schema": {"type": "string", "format": "binary"},
+            },
+        },
+    }
+}
+
+
+async def _read_body(request: Request, limit: int) -> bytes:
+    declared = request.headers.get("content-length")
+    if declared is not None and declared.isdigit() and int(declared) > limit:
+        raise PayloadTooLarge(f"body of {declared} bytes exceeds the limit of {limit} bytes")
+    buf = bytearray()
+    async for chunk in request.stream():
+        buf += chunk
+        if len(buf) > limit:
+            raise PayloadTooLarge(f"body exceeds the limit of {limit} bytes")
+    return bytes(buf)
+
+
+@router.post(
+    "/aircraft/{tail}/actuators/{actuator_id}/telemetry",
+    status_code=202,
+    responses={
+        202: {"description": "Batch committed to the telemetry log", "model": None},
+        **error_responses(400, 401, 403, 404, 409, 413, 415),
+    },
+    openapi_extra=_BODY_DOC,
+    response_model=None,
+)
+async def post_telemetry(
+    request: Request,
+    tail: str,
+    actuator_id: str,
+    db: DbDep,
+    settings: SettingsDep,
+    processor: ProcessorDep,
+    p: IngestDep,
+    batch_id: Annotated[str | None, Query(description="Client batch id (CSV and Arrow bodies)")] = None,
+    t0: Annotated[float | None, Query(description="Time of the first sample, seconds")] = None,
+    sample_rate_hz: Annotated[float | None, Query(gt=0)] = None,
+    end_of_run: Annotated[
+        bool, Query(description="This batch ends a run (CSV and Arrow bodies; JSON: the field)")
+    ] = False,
+    wait: Annotated[float, Query(ge=0, description="Seconds to wait until the batch is applied")] = 0.0,
+    idempotency_key: Annotated[str | None, Header()] = None,
+) -> Response:
+    """Append a batch of samples to the actuator's telemetry log (ingest scope).
+
+    JSON, CSV (header row = channel names, optional `t` column) or an Arrow IPC stream. A 202
+    means the batch is committed in the log; the estimators apply it in stream order. The same
+    `batch_id` again returns the first answer (header `Idempotent-Replayed: true`) and appends
+    nothing. With `wait` the answer comes once the batch is applied (or the wait runs out); a
+    409 `StreamFailed` says at once that the stream is no longer applied, and why (the batch is
+    logged all the same).
+    """
+    try:
+        mt = media_type(request.headers.get("content-type"))
+        body = await _read_body(request, settings.max_body_bytes)
+        params = TimeParams(
+            batch_id=batch_id or idempotency_key, t0=t0, sample_rate_hz=sample_rate_hz, end_of_run=end_of_run
+        )
+        ack = await run_in_threadpool(
+            service.ingest_body, db, p.operator_id, tail, actuator_id, body, mt, params, settings.max_batch_samples
+        )
+    except DomainError as exc:
+        BATCHES_REJECTED.labels(exc.name).inc()
+        raise
+    if ack.replayed:
+        BATCHES_REPLAYED.inc()
+    else:
+        BATCHES_LOGGED.inc()
+        SAMPLES_LOGGED.inc(ack.n_samples)
+        processor.notify(ack.actuator_pk)
+    if wait > 0:
+        outcome = await run_in_threadpool(
+            processor.wait_applied, ack.actuator_pk, ack.seq, min(wait, settings.max_wait_s)
+        )
+        if outcome.failure is not None:
+            raise StreamFailed(
+                f"batch {ack.batch_id!r} is logged as seq {ack.seq} but the stream is no longer "
+                f"applied: {outcome.failure}"
+            )
+    headers = {"Idempotent-Replayed": "true"} if ack.replayed else None
+    return json_response(ack.body(), status_code=202, headers=headers)

@@ -1,0 +1,147 @@
+"""The telemetry log: durable, idempotent, ordered append of batches.
+
+:func:`log_batch` holds the rules and is the one way into the log, for REST batches
+(:func:`ingest_body`) and streamed frames (:func:`ingest_frame`). Both commit before they
+return: an acknowledgement means the batch is durable.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from datetime import datetime
+
+from sqlalchemy.orm import Session
+
+from app.codec import encode_columns
+from app.db import Database
+from app.errors import IdempotencyConflict, StaleBatch
+from app.fleet import service as fleet
+from app.ingest import TIME_COLUMN, ParsedBatch, TimeParams, client_seq_of, parse_body, parse_frame
+from app.models import Actuator, TelemetryBatch
+from app.telemetry import repository
+
+
+@dataclass(frozen=True)
+class Ack:
+    actuator_pk: int
+    batch_id: str
+    seq: int
+    n_samples: int
+    t_first_s: float
+    t_last_s: float
+    received_at: datetime
+    end_of_run: bool
+    replayed: bool
+
+    def body(self) -> dict[str, object]:
+        return {
+            "batch_id": self.batch_id,
+            "seq": self.seq,
+            "n_samples": self.n_samples,
+            "t_first_s": self.t_first_s,
+            "t_last_s": self.t_last_s,
+            "end_of_run": self.end_of_run,
+            "received_at": self.received_at.isoformat(),
+        }
+
+
+def _ack(row: TelemetryBatch, replayed: bool) -> Ack:
+    return Ack(
+        actuator_pk=row.actuator_pk,
+        batch_id=row.batch_id,
+        seq=row.seq,
+        n_samples=row.n_samples,
+        t_first_s=row.t_first_s,
+        t_last_s=row.t_last_s,
+        received_at=row.received_at,
+        end_of_run=row.end_of_run,
+        replayed=replayed,
+    )
+
+
+def log_batch(session: Session, actuator: Actuator, batch: ParsedBatch) -> Ack:
+    """Append ``batch`` to the actuator's log. The caller holds the lock on the actuator row.
+
+    A ``batch_id`` seen before returns the first acknowledgement and appends nothing; the same
+    id with different samples (or another end-of-run marker) is a conflict. A streamed frame
+    must come after the last logged frame (``client_seq``), and every batch after the stream's
+    last sample in time.
+    """
+    digest = batch.content_hash()
+    prior = repository.batch_by_id(session, actuator.id, batch.batch_id)
+    if prior is not None:
+        if prior.content_hash != digest:
+            raise IdempotencyConflict(
+                f"batch_id {batch.batch_id!r} was already used for different samples (seq {prior.seq})"
+            )
+        return _ack(prior, replayed=True)
+    client_seq = client_seq_of(batch.batch_id)
+    last_client_seq = actuator.last_client_seq or 0
+    if client_seq is not None and client_seq <= last_client_seq:
+        raise StaleBatch(
+            f"client_seq {client_seq} is not after the last logged frame ({last_client_seq}); "
+            "resume after the last_client_seq the server announced"
+        )
+    t_first = float(batch.t_s[0])
+    if actuator.last_logged_t_s is not None and t_first <= actuator.last_logged_t_s:
+        raise StaleBatch(
+            f"batch starts at t={t_first!r} s, not after the stream's last sample at "
+            f"t={actuator.last_logged_t_s!r} s (seq {actuator.last_logged_seq}); batches must "
+            "follow each other in time"
+        )
+    seq = actuator.last_logged_seq + 1
+    row = TelemetryBatch(
+        actuator_pk=actuator.id,
+        seq=seq,
+        batch_id=batch.batch_id,
+        content_hash=digest,
+        n_samples=batch.n_samples,
+        t_first_s=t_first,
+        t_last_s=float(batch.t_s[-1]),
+        end_of_run=batch.end_of_run,
+        payload=encode_columns({TIME_COLUMN: batch.t_s, **batch.channels}),
+    )
+    if not repository.add_batch(session, row):
+        # Another writer logged the same batch_id between our look-up and insert.
+        raise IdempotencyConflict(f"batch_id {batch.batch_id!r} is being logged concurrently; retry")
+    actuator.last_logged_seq = seq
+    actuator.last_logged_t_s = float(batch.t_s[-1])
+    if client_seq is not None:
+        actuator.last_client_seq = max(last_client_seq, client_seq)
+    session.flush()
+    return _ack(row, replayed=False)
+
+
+def ingest_body(
+    db: Database,
+    operator_id: int,
+    tail: str,
+    actuator_id: str,
+    body: bytes,
+    media_type: str,
+    params: TimeParams,
+    max_samples: int,
+) -> Ack:
+    """Parse a REST body and log it, committed on return.
+
+    The body is parsed outside the write transaction (a large batch never holds the log's
+    lock while it is decoded); the actuator is looked up again, locked, to append.
+    """
+    with db.read() as s:
+        channels = list(fleet.get_actuator(s, operator_id, tail, actuator_id).channels)
+    parsed = parse_body(body, media_type, params, channels, max_samples)
+    with db.write() as s:
+        act = fleet.get_actuator(s, operator_id, tail, actuator_id, lock=True)
+        return log_batch(s, act, parsed)
+
+
+def ingest_frame(
+    db: Database, actuator_pk: int, channels: list[str], data: str | bytes, max_samples: int
+) -> tuple[int, Ack]:
+    """Parse a WebSocket frame and log it, committed on return: ``(client_seq, ack)``."""
+    client_seq, parsed = parse_frame(data, channels, max_samples)
+    with db.write() as s:
+        act = repository.actuator_for_update(s, actuator_pk)
+        if act is None:
+            raise StaleBatch("the actuator was deleted")
+        return client_seq, log_batch(s, act, parsed)

@@ -1,0 +1,182 @@
+"""In-process publish/subscribe of applied results and fleet events.
+
+The processor thread publishes after each committed apply; WebSocket handlers in the event loop
+subscribe. Publishing never blocks the processor: each subscriber has a bounded queue, filled
+with ``loop.call_soon_threadsafe``; a subscriber whose queue is full is marked ``overflowed``
+and its connection closes it (a slow consumer is dropped, never waited for).
+
+Fleet events (JSON objects with a ``type``):
+
+* ``status_changed``: an actuator's worst status changed (``from``, ``to``, ``reasons``);
+* estimator events of the kinds in :data:`FLEET_EVENT_KINDS` (fault detections and clearances,
+  RUL and deterioration thresholds crossed), with the estimator's ``detail``;
+* ``applied`` (only when asked for): one per applied batch, with the status and the last value
+  of each per-sample output, for live boards.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import threading
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from app.processing.service import ApplyResult
+
+FLEET_EVENT_KINDS = frozenset(
+    {"fault_detected", "fault_cleared", "rul_threshold_crossed", "dn_threshold_crossed"}
+)
+DEFAULT_FLEET_TYPES = frozenset({"status_changed", *FLEET_EVENT_KINDS})
+ALL_FLEET_TYPES = frozenset({*DEFAULT_FLEET_TYPES, "applied"})
+
+
+@dataclass(frozen=True)
+class StreamMeta:
+    """Who owns a stream: fleet events carry the tail and actuator id, filtered by operator."""
+
+    operator_id: int
+    tail: str
+    actuator_id: str
+
+
+@dataclass(eq=False)
+class Subscription:
+    """One subscriber's bounded queue, owned by an event loop."""
+
+    loop: asyncio.AbstractEventLoop
+    queue: asyncio.Queue[Any]
+    accept: Callable[[Any], bool] = field(default=lambda _item: True)
+    overflowed: bool = False
+    wakeup: asyncio.Event = field(default_factory=asyncio.Event)
+
+    def _offer(self, item: Any) -> None:  # runs in the subscriber's loop
+        if self.overflowed:
+            return
+        try:
+            self.queue.put_nowait(item)
+        except asyncio.QueueFull:
+            self.overflowed = True
+        self.wakeup.set()
+
+    def offer(self, item: Any) -> None:
+        """Called from any thread; never blocks."""
+        if self.accept(item):
+            # A closed loop means the subscriber is gone.
+            with contextlib.suppress(RuntimeError):
+                self.loop.call_soon_threadsafe(self._offer, item)
+
+
+class Hub:
+    """Routes applied results to the connections streaming into an actuator, and fleet events
+    to fleet subscribers."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._streams: dict[int, set[Subscription]] = {}
+        self._fleet: set[Subscription] = set()
+
+    # ------------------------------------------------------------------ subscriptions
+    def subscribe_stream(self, actuator_pk: int, maxsize: int) -> Subscription:
+        sub = Subscription(asyncio.get_running_loop(), asyncio.Queue(maxsize))
+        with self._lock:
+            self._streams.setdefault(actuator_pk, set()).add(sub)
+        return sub
+
+    def subscribe_fleet(
+        self, operator_id: int, tails: Iterable[str] | None, types: Iterable[str], maxsize: int
+    ) -> Subscription:
+        tail_set = frozenset(tails) if tails else None
+        type_set = frozenset(types)
+
+        def accept(ev: dict[str, Any]) -> bool:
+            return (
+                ev["_operator_id"] == operator_id
+                and ev["type"] in type_set
+                and (tail_set is None or ev["tail"] in tail_set)
+            )
+
+        sub = Subscription(asyncio.get_running_loop(), asyncio.Queue(maxsize), accept)
+        with self._lock:
+            self._fleet.add(sub)
+        return sub
+
+    def unsubscribe(self, sub: Subscription) -> None:
+        with self._lock:
+            self._fleet.discard(sub)
+            for subs in self._streams.values():
+                subs.discard(sub)
+            for pk in [pk for pk, subs in self._streams.items() if not subs]:
+                del self._streams[pk]
+
+    # ------------------------------------------------------------------ publishing
+    def has_fleet_subscribers(self) -> bool:
+        return bool(self._fleet)
+
+    def publish_applied(self, actuator_pk: int, items: Sequence[Any]) -> None:
+        with self._lock:
+            subs = list(self._streams.get(actuator_pk, ()))
+        for sub in subs:
+            for item in items:
+                sub.offer(item)
+
+    def publish_fleet(self, events: list[dict[str, Any]]) -> None:
+        with self._lock:
+            subs = list(self._fleet)
+        for sub in subs:
+            for ev in events:
+                sub.offer(ev)
+
+
+def fleet_events(meta: StreamMeta, result: ApplyResult) -> list[dict[str, Any]]:
+    """Fleet events of one committed apply."""
+    base = {"_operator_id": meta.operator_id, "tail": meta.tail, "actuator_id": meta.actuator_id}
+    out: list[dict[str, Any]] = []
+    status = result.status_before
+    for ab in result.applied:
+        for name, est in ab.estimators.items():
+            for ev in est.events:
+                if ev["kind"] in FLEET_EVENT_KINDS:
+                    out.append(
+                        {
+                            **base,
+                            "type": ev["kind"],
+                            "estimator": name,
+                            "seq": ab.seq,
+                            "t_s": ev["t_s"],
+                            "detail": ev["detail"],
+                        }
+                    )
+        if ab.status != status:
+            reasons = [r for est in ab.estimators.values() for r in est.reasons]
+            out.append(
+                {
+                    **base,
+                    "type": "status_changed",
+                    "seq": ab.seq,
+                    "t_s": ab.t_last_s,
+                    "from": status,
+                    "to": ab.status,
+                    "reasons": reasons,
+                }
+            )
+            status = ab.status
+        out.append(
+            {
+                **base,
+                "type": "applied",
+                "seq": ab.seq,
+                "t_s": ab.t_last_s,
+                "n_samples": ab.n_samples,
+                "status": ab.status,
+                "last": {name: est.last for name, est in ab.estimators.items()},
+            }
+        )
+    return out
+
+
+def public(event: dict[str, Any]) -> dict[str, Any]:
+    """An event as sent to subscribers (without routing keys)."""
+    return {k: v for k, v in event.items() if not k.startswith("_")}
