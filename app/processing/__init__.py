@@ -5,6 +5,12 @@
 ``processor`` (the background thread, its retries and failures).
 """
 
-from app.processing.service import ApplyResult, applied_results, apply_pending, replay_estimator
+from app.processing.service import (
+    ApplyResult,
+    Replay,
+    applied_results,
+    apply_pending,
+    replay_estimator,
+)
 
-__all__ = ["ApplyResult", "applied_results", "apply_pending", "replay_estimator"]
+__all__ = ["ApplyResult", "Replay", "applied_results", "apply_pending", "replay_estimator"]

@@ -180,14 +180,14 @@ class Processor:
         log.warning("stream %s: %s; replaying it from the telemetry log", actuator_pk, exc)
         try:
             with self.db.write() as s:
-                done = service.replay_estimator(
+                outcome = service.replay_estimator(
                     s,
                     actuator_pk,
                     exc.estimator,
                     store_outputs=self.settings.store_sample_outputs,
                     is_sqlite=self.db.is_sqlite,
                 )
-                if not done:
+                if outcome is service.Replay.LOG_INCOMPLETE:
                     self._mark_failed(
                         s,
                         actuator_pk,
@@ -199,11 +199,12 @@ class Processor:
         except Exception as replay_exc:
             self._attempt_failed(actuator_pk, replay_exc)
             return False
-        if done:
+        if outcome is service.Replay.DONE:
             STATE_REPLAYS.inc()
-        else:
+            return True
+        if outcome is service.Replay.LOG_INCOMPLETE:
             self._after_failed(actuator_pk)
-        return done
+        return False  # failed, or another worker holds the stream and replays it
 
     def _attempt_failed(self, actuator_pk: int, exc: BaseException) -> None:
         """Back off a stream whose apply raised; mark it failed after the last attempt."""

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from enum import Enum
 
 from sqlalchemy.orm import Session
 
@@ -141,23 +142,31 @@ def apply_pending(
     )
 
 
+class Replay(Enum):
+    """How a replay ended."""
+
+    DONE = "done"
+    LOG_INCOMPLETE = "log_incomplete"  # retention dropped batches: nothing changed
+    BUSY = "busy"  # another worker holds the stream: nothing changed
+
+
 def replay_estimator(
     session: Session, actuator_pk: int, estimator: str, *, store_outputs: bool, is_sqlite: bool
-) -> bool:
+) -> Replay:
     """Re-initialise one estimator of a stream and replay every applied batch through it, in
     the caller's transaction; its earlier outputs are replaced by the replay's.
 
     Used when the estimator's stored state has a version this build cannot read: the outputs
-    then are those of an uninterrupted run with this build. False (nothing changed) when the
-    log no longer holds every batch from the first (retention dropped payloads), or another
-    worker holds the stream.
+    then are those of an uninterrupted run with this build. Nothing changes when the log no
+    longer holds every batch from the first (retention dropped payloads), or another worker
+    holds the stream.
     """
     stream = repository.claim(session, actuator_pk, is_sqlite=is_sqlite)
     if stream is None:
-        return False
+        return Replay.BUSY
     upto = stream.last_applied_seq
     if not repository.log_holds_from_first(session, actuator_pk, upto):
-        return False
+        return Replay.LOG_INCOMPLETE
     est_rows = repository.estimators(session, actuator_pk)
     er = next(r for r in est_rows if r.estimator == estimator)
     repository.delete_outputs(session, actuator_pk, estimator)
@@ -176,7 +185,7 @@ def replay_estimator(
     stream.status = worst_status([r.status for r in est_rows])
     stream.updated_at = utcnow()
     session.flush()
-    return True
+    return Replay.DONE
 
 
 def applied_results(session: Session, actuator_pk: int, seqs: list[int]) -> list[BatchResult]:
