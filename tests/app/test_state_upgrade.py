@@ -11,6 +11,7 @@ import pytest
 from fastapi.testclient import TestClient
 from prometheus_client import REGISTRY
 from sqlalchemy import select, update
+from starlette.websockets import WebSocketDisconnect
 
 from app import cli
 from app.db import Database
@@ -155,3 +156,25 @@ def test_other_apply_errors_are_retried_then_fail_the_stream(
     h = api.health()
     assert h["status"] == "failed" and "3 times" in h["failure"] and "RuntimeError: kernel exploded" in h["failure"]
     assert h["last_applied_seq"] == 0
+
+
+def test_a_stream_connection_to_a_failed_stream_is_told_why(api: Api, db_url: str) -> None:
+    api.setup_actuator()
+    db = Database(db_url)
+    with db.write() as session:
+        pk = session.scalar(select(Actuator.id).where(Actuator.actuator_id == "ema1"))
+        assert pk is not None
+        repository.mark_failed(session, pk, "test: cannot be applied")
+    db.dispose()
+    frame = {"type": "samples", "client_seq": 1, "t": [0.0, 0.001], "channels": {"current": [1.0, 2.0], "voltage": [0.5, None]}}
+    with api.c.websocket_connect("/v1/aircraft/N1/actuators/ema1/stream", headers=api.h) as ws:
+        ready = ws.receive_json()
+        assert ready["type"] == "ready" and ready["failure"] == "test: cannot be applied"
+        ws.send_json(frame)
+        assert ws.receive_json()["type"] == "logged"  # durable all the same
+        err = ws.receive_json()
+        assert err["type"] == "error" and err["error"] == "StreamFailed" and "cannot be applied" in err["detail"]
+        with pytest.raises(WebSocketDisconnect) as closed:
+            ws.receive_json()
+    assert closed.value.code == 1011
+    assert api.health()["last_logged_seq"] == 1 and api.health()["last_applied_seq"] == 0
