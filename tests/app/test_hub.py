@@ -8,12 +8,12 @@ import threading
 
 import numpy as np
 import pytest
+from fleethealth_client.streaming import encode_frame
 
 from app.errors import InvalidBatch
 from app.hub import Hub, StreamMeta, fleet_events, public
 from app.ingest import UnsupportedFrame, client_seq_of, frame_batch_id, parse_frame
 from app.processing import AppliedBatch, ApplyResult
-from app.streaming import encode_frame
 
 
 def _applied(seq: int, status: str, events: list[dict] | None = None) -> AppliedBatch:  # type: ignore[type-arg]
