@@ -87,6 +87,17 @@ def encode_frame(
 
 @dataclass
 class StreamStats:
+    """What a :class:`FrameStreamer` saw.
+
+    Attributes:
+        connects: connections opened (1 plus the reconnections).
+        frames_sent: frames handed to :meth:`FrameStreamer.send` (each sent again after a
+            reconnection is counted once).
+        duplicates: frames the server answered as already logged.
+        slow_downs: back-pressure notices received.
+        results: the ``result`` messages pushed back, in order of arrival.
+    """
+
     connects: int = 0
     frames_sent: int = 0
     duplicates: int = 0
@@ -95,7 +106,20 @@ class StreamStats:
 
 
 class FrameStreamer:
-    """Streams frames into one actuator and collects the results pushed back."""
+    """Streams frames into one actuator and collects the results pushed back.
+
+    Args:
+        base_url: the server's HTTP(S) address, e.g. ``"http://127.0.0.1:8000"``.
+        api_key: key with the ``ingest`` scope.
+        tail: aircraft tail.
+        actuator_id: actuator of that aircraft.
+        binary: send Arrow frames (needs pyarrow) instead of JSON text.
+        samples: ask for every per-sample output in the results (``?samples=true``).
+        auth_message: authenticate with a first message instead of a header (as browsers must).
+        reconnect_delays_s: waits between reconnection attempts; the last one repeats.
+        max_reconnects: attempts before :meth:`open` gives up with ``ConnectionError``.
+        open_timeout_s: limit on opening a connection and receiving ``ready``.
+    """
 
     def __init__(
         self,
