@@ -9,11 +9,13 @@ export FLEETHEALTH_REQUIRE_PG ?= 1
 
 .PHONY: run demo test test-fast lint typecheck bench validate openapi migrate clean
 
-$(STAMP): pyproject.toml constraints.txt
+# The service (with its dev tools) and the client package it ships beside (clients/python), both
+# editable; the client is a separate distribution, used by simulate/replay, bench/ and the tests.
+$(STAMP): pyproject.toml constraints.txt clients/python/pyproject.toml
 	@command -v $(PYTHON) >/dev/null || { echo "need $(PYTHON) on PATH (or make PYTHON=/path/to/python3.11)"; exit 1; }
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -c constraints.txt -e ".[dev]"
+	$(BIN)/pip install --quiet -c constraints.txt -e "./clients/python[arrow]" -e ".[dev]"
 	@touch $(STAMP)
 
 ## Create the environment, migrate the embedded SQLite database and serve on 127.0.0.1:8000.
@@ -33,7 +35,7 @@ test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -m "not e2e"
 
 lint: $(STAMP)
-	$(BIN)/ruff check app estimators tests bench scripts
+	$(BIN)/ruff check app estimators fleethealth_tools clients tests bench scripts
 
 typecheck: $(STAMP)
 	$(BIN)/mypy

@@ -92,9 +92,9 @@ def _listen(host: str, port: int, send_buffer_bytes: int | None) -> socket.socke
 
 
 def _demo_feeder(url: str, key: str, stop: threading.Event) -> None:
-    from app.tools.simulate import run_simulation
-
     try:
+        from fleethealth_tools.simulate import run_simulation
+
         # Waits for /readyz itself. Every second aircraft's flight controls get surface faults;
         # the taxi drives wear out at different rates.
         run_simulation(url, key, stop_event=stop, flight_controls=True, friction_drives=True)
@@ -208,15 +208,9 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--output", "-o", default="openapi/openapi.json", help="file, or - for stdout")
     sp.set_defaults(func=cmd_export_openapi)
 
-    from app.tools import replay, simulate
+    from fleethealth_tools.commands import add_subcommands
 
-    sp = sub.add_parser("simulate", help="feed a running server with a simulated fleet")
-    simulate.add_arguments(sp)
-    sp.set_defaults(func=simulate.run)
-
-    sp = sub.add_parser("replay", help="send recorded files (e.g. FLEA runs) to a running server")
-    replay.add_arguments(sp)
-    sp.set_defaults(func=replay.run)
+    add_subcommands(sub)  # simulate, replay
     return p
 
 

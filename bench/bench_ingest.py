@@ -50,7 +50,7 @@ from scipy.signal import lfilter
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from app.client import (  # noqa: E402
+from fleethealth_client import (  # noqa: E402
     AsyncFleetHealthClient,
     EncodedBatch,
     FleetHealthClient,

@@ -34,9 +34,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 from bench_ingest import make_stream, running_server  # noqa: E402
-
-from app.client import FleetHealthClient  # noqa: E402
-from app.streaming import FrameStreamer, frames_of  # noqa: E402
+from fleethealth_client import FleetHealthClient, FrameStreamer, frames_of  # noqa: E402
 
 FAKF = {"fakf": {"identification_samples": 1000, "health_window_samples": 1000}}
 

@@ -8,12 +8,12 @@ import threading
 
 import numpy as np
 import pytest
+from fleethealth_client.streaming import encode_frame
 
 from app.errors import InvalidBatch
 from app.ingest import UnsupportedFrame, client_seq_of, frame_batch_id, parse_frame
 from app.processing import ApplyResult
 from app.processing.messages import BatchResult, EstimatorResult
-from app.streaming import encode_frame
 from app.websocket.hub import Hub, StreamMeta, fleet_events, public
 
 

@@ -9,8 +9,8 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+from fleethealth_client import FleetHealthClient
 
-from app.client import FleetHealthClient
 from tests.conftest import make_series
 from tests.e2e.conftest import LiveServer
 

@@ -12,13 +12,19 @@ import httpx
 import numpy as np
 import orjson
 import pytest
+from fleethealth_client import FleetHealthClient
+from fleethealth_client.streaming import (
+    FrameStreamer,
+    StreamRefused,
+    encode_frame,
+    frames_of,
+    ws_url,
+)
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
 from app.auth.service import create_key
-from app.client import FleetHealthClient
 from app.db import Database
-from app.streaming import FrameStreamer, StreamRefused, encode_frame, frames_of, ws_url
 from tests.conftest import make_series
 from tests.e2e.conftest import LiveServer
 

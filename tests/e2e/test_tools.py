@@ -20,11 +20,11 @@ from typing import Any
 import numpy as np
 import pytest
 import yaml
+from fleethealth_client import FleetHealthClient
 from scipy.signal import lfilter
 
-from app.client import FleetHealthClient
-from app.tools.replay import flea_actuator_id
 from estimators.flea import flea_dir
+from fleethealth_tools.replay import flea_actuator_id
 
 pytestmark = pytest.mark.e2e
 
@@ -272,7 +272,7 @@ def test_simulate_registers_fleet_and_degradation_shows_in_fakf_health(
     compose_server: _Server, compose_client: FleetHealthClient
 ) -> None:
     """Against the server started by the compose file's command."""
-    from app.tools.simulate import run_simulation
+    from fleethealth_tools.simulate import run_simulation
 
     server, client = compose_server, compose_client
 

@@ -17,20 +17,25 @@ three quarters of the way). Nothing but the plant's physics changes; there is no
 from __future__ import annotations
 
 import argparse
+import asyncio
 import contextlib
 import math
 import os
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Coroutine, Iterator
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 import httpx
 import numpy as np
-
-from app.client import BATCH_FORMATS, ApiError, FleetHealthClient
-from app.streaming import StreamRefused
+from fleethealth_client import (
+    BATCH_FORMATS,
+    ApiError,
+    FleetHealthClient,
+    FrameStreamer,
+    StreamRefused,
+)
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 ACTUATOR_KIND = "ema_voltage"
@@ -174,8 +179,14 @@ def random_fault_schedule(rng: np.random.Generator, duration_s: float) -> tuple[
         else:
             amp = float(np.round(rng.uniform(2.0, limit), 1))
             out.append(
-                SurfaceFault(surface, start, start + length, "square", amplitude_deg=amp,
-                             period_s=float(np.round(rng.uniform(1.0, 3.0), 1)))
+                SurfaceFault(
+                    surface,
+                    start,
+                    start + length,
+                    "square",
+                    amplitude_deg=amp,
+                    period_s=float(np.round(rng.uniform(1.0, 3.0), 1)),
+                )
             )
     return tuple(out)
 
@@ -202,7 +213,9 @@ class _Flights:
         stream.pending = {k: np.asarray(v, dtype=np.float64) for k, v in channels.items()}
         stream.pending_pos = 0
 
-    def next_batch(self, stream: _Stream, n_samples: int) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    def next_batch(
+        self, stream: _Stream, n_samples: int
+    ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         return _take(stream, n_samples, FLIGHT_RATE_HZ, lambda: self._next_chunk(stream))
 
 
@@ -246,14 +259,20 @@ class _Drives:
             initial_speeds=(w1, w2),
             t0_s=stream.cycle_index * DRIVE_CHUNK_S,
         )
-        self.plant[id(stream)] = (float(truth["alpha"][-1]), float(truth["w1"][-1]), float(truth["w2"][-1]))
+        self.plant[id(stream)] = (
+            float(truth["alpha"][-1]),
+            float(truth["w1"][-1]),
+            float(truth["w2"][-1]),
+        )
         stream.cycle_index += 1
         n = len(t) - 1
         stream.pending_t = stream.t_next_s + np.arange(n, dtype=np.float64) / DRIVE_RATE_HZ
         stream.pending = {k: np.asarray(v[:n], dtype=np.float64) for k, v in channels.items()}
         stream.pending_pos = 0
 
-    def next_batch(self, stream: _Stream, n_samples: int) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    def next_batch(
+        self, stream: _Stream, n_samples: int
+    ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         return _take(stream, n_samples, DRIVE_RATE_HZ, lambda: self._next_chunk(stream))
 
 
@@ -325,6 +344,13 @@ def wait_until_ready(
 
 
 TRANSPORTS = ("rest", "ws")
+#: Limit on one call into the WebSocket event loop (open, send), seconds.
+WS_CALL_TIMEOUT_S = 120.0
+#: Limit on waiting for every frame of a stream to be logged and applied at the end, seconds.
+WS_DRAIN_TIMEOUT_S = 60.0
+#: Limit on joining the event-loop thread at the end, seconds.
+WS_THREAD_JOIN_S = 10.0
+T = TypeVar("T")
 
 
 class _WsSenders:
@@ -332,24 +358,25 @@ class _WsSenders:
     event loop in a background thread."""
 
     def __init__(self, base_url: str, api_key: str, binary: bool) -> None:
-        import asyncio
-
-        from app.streaming import FrameStreamer
-
-        self._asyncio = asyncio
-        self._make = lambda tail, act: FrameStreamer(base_url, api_key, tail, act, binary=binary)
+        self.base_url = base_url
+        self.api_key = api_key
+        self.binary = binary
         self.loop = asyncio.new_event_loop()
-        self.thread = threading.Thread(target=self.loop.run_forever, name="simulate-ws", daemon=True)
+        self.thread = threading.Thread(
+            target=self.loop.run_forever, name="simulate-ws", daemon=True
+        )
         self.thread.start()
-        self.streams: dict[tuple[str, str], Any] = {}
+        self.streams: dict[tuple[str, str], FrameStreamer] = {}
 
-    def _run(self, coro: Any, timeout_s: float = 120.0) -> Any:
-        return self._asyncio.run_coroutine_threadsafe(coro, self.loop).result(timeout_s)
+    def _run(self, coro: Coroutine[Any, Any, T], timeout_s: float = WS_CALL_TIMEOUT_S) -> T:
+        return asyncio.run_coroutine_threadsafe(coro, self.loop).result(timeout_s)
 
-    def send(self, tail: str, actuator_id: str, t_s: np.ndarray, channels: dict[str, np.ndarray]) -> None:
+    def send(
+        self, tail: str, actuator_id: str, t_s: np.ndarray, channels: dict[str, np.ndarray]
+    ) -> None:
         key = (tail, actuator_id)
         if key not in self.streams:
-            fs = self._make(tail, actuator_id)
+            fs = FrameStreamer(self.base_url, self.api_key, tail, actuator_id, binary=self.binary)
             self._run(fs.open())
             self.streams[key] = fs
         self._run(self.streams[key].send(channels, t_s=t_s))
@@ -357,11 +384,11 @@ class _WsSenders:
     def close(self) -> None:
         for fs in self.streams.values():
             try:
-                self._run(fs.drain(60.0))
+                self._run(fs.drain(WS_DRAIN_TIMEOUT_S))
             finally:
                 self._run(fs.close())
         self.loop.call_soon_threadsafe(self.loop.stop)
-        self.thread.join(10)
+        self.thread.join(WS_THREAD_JOIN_S)
         self.loop.close()
 
 
@@ -493,18 +520,23 @@ def run_simulation(
                     )
                 )
                 summary.actuators.append((tail, actuator_id))
-                log(f"simulate: {tail}/{actuator_id} flight controls" + (f", {faults} faults" if inject else ""))
+                log(
+                    f"simulate: {tail}/{actuator_id} flight controls"
+                    + (f", {faults} faults" if inject else "")
+                )
 
         if friction_drives:
             for a, tail in enumerate(list(summary.aircraft)):
                 actuator_id = "taxi-drive"
-                client.create_actuator(tail, actuator_id, kind=DRIVE_KIND, estimators=DRIVE_ESTIMATORS)
+                client.create_actuator(
+                    tail, actuator_id, kind=DRIVE_KIND, estimators=DRIVE_ESTIMATORS
+                )
                 t_last = client.health(tail, actuator_id).get("t_last_s")
                 if t_last is not None:
                     # The plant's wear is not stored: a drive with data is not resumed.
                     log(f"simulate: {tail}/{actuator_id} has data already; not simulated again")
                     continue
-                wear = DRIVE_WEAR_RATES[a % len(DRIVE_WEAR_RATES)]
+                wear_rate = DRIVE_WEAR_RATES[a % len(DRIVE_WEAR_RATES)]
                 streams.append(
                     _Stream(
                         tail=tail,
@@ -515,11 +547,11 @@ def run_simulation(
                         t_next_s=now_s,
                         t_begin_s=now_s,
                         kind=DRIVE_KIND,
-                        wear_rate=wear,
+                        wear_rate=wear_rate,
                     )
                 )
                 summary.actuators.append((tail, actuator_id))
-                log(f"simulate: {tail}/{actuator_id} friction drive, wear rate m = {wear:g}")
+                log(f"simulate: {tail}/{actuator_id} friction drive, wear rate m = {wear_rate:g}")
 
         def faults_for(stream: _Stream, chunk: int) -> tuple[Any, ...]:
             if not stream.inject_faults:
@@ -528,7 +560,9 @@ def run_simulation(
                 from estimators.simulators.uav_closed_loop import PAPER_FAULT_SCHEDULE
 
                 return PAPER_FAULT_SCHEDULE
-            return random_fault_schedule(np.random.default_rng((stream.seed, chunk)), FLIGHT_CHUNK_S)
+            return random_fault_schedule(
+                np.random.default_rng((stream.seed, chunk)), FLIGHT_CHUNK_S
+            )
 
         flights = _Flights(faults_for)
         flight_batch = max(1, round(batch_seconds * FLIGHT_RATE_HZ))

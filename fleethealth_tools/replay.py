@@ -31,8 +31,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-from app.client import BATCH_FORMATS, ApiError, FleetHealthClient
+from fleethealth_client import BATCH_FORMATS, ApiError, FleetHealthClient
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 DEFAULT_TAIL = "FLEA-STAND"

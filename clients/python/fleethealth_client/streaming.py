@@ -10,6 +10,8 @@ logged (durable). When the connection drops, :meth:`FrameStreamer.send` and
 :meth:`FrameStreamer.drain` reconnect (with backoff), read the server's ``last_client_seq`` and
 send again only the frames after it, so nothing is lost and nothing is logged twice. A frame the
 server refuses (invalid samples, out of order) raises :class:`StreamRefused`; it is not retried.
+
+JSON frames need numpy and orjson only; binary (Arrow) frames need pyarrow (the ``arrow`` extra).
 """
 
 from __future__ import annotations
@@ -21,25 +23,36 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
 import orjson
-import pyarrow as pa
 from numpy.typing import ArrayLike
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 
-from app.client import _as_float_columns, _time_params
+from fleethealth_client.arrow import ipc_stream
+from fleethealth_client.columns import TIME_COLUMN, FloatArray, as_float_columns, time_params
+from fleethealth_client.errors import StreamRefused
+from fleethealth_client.paths import actuator_path, ws_url
+
+__all__ = [
+    "REFUSAL_CODES",
+    "FrameStreamer",
+    "StreamRefused",
+    "StreamStats",
+    "encode_frame",
+    "frames_of",
+    "ws_url",
+]
 
 # Close codes after which sending the same frame again cannot succeed.
 REFUSAL_CODES = frozenset({1003, 1007, 1008, 1009})
-
-
-class StreamRefused(Exception):
-    """The server refused a frame or the connection (error message and close code)."""
-
-    def __init__(self, code: int | None, error: str, detail: str) -> None:
-        super().__init__(f"{error}: {detail} (close code {code})")
-        self.code, self.error, self.detail = code, error, detail
+#: Delays between reconnection attempts (seconds); the last one repeats.
+RECONNECT_DELAYS_S = (0.1, 0.25, 0.5, 1.0, 2.0, 5.0)
+#: Reconnection attempts before giving up.
+MAX_RECONNECTS = 20
+#: Seconds to open a connection and receive the server's ``ready``.
+OPEN_TIMEOUT_S = 10.0
+#: Default limit of :meth:`FrameStreamer.drain` (seconds).
+DRAIN_TIMEOUT_S = 60.0
 
 
 def encode_frame(
@@ -51,37 +64,40 @@ def encode_frame(
     sample_rate_hz: float | None = None,
     binary: bool = False,
 ) -> str | bytes:
-    """One frame: JSON text, or an Arrow IPC stream with ``client_seq`` in the schema metadata."""
-    t_arr, columns = _as_float_columns(channels, t_s)
-    time_params = _time_params(t_arr, t0, sample_rate_hz)
+    """One frame: JSON text, or an Arrow IPC stream with ``client_seq`` in the schema metadata.
+
+    Raises:
+        ValueError: an invalid batch (see :func:`fleethealth_client.columns.as_float_columns`).
+        ImportError: ``binary`` without pyarrow installed.
+    """
+    t_arr, columns = as_float_columns(channels, t_s)
+    timing = time_params(t_arr, t0, sample_rate_hz)
     if not binary:
         doc: dict[str, Any] = {"type": "samples", "client_seq": client_seq}
         if t_arr is not None:
             doc["t"] = t_arr
-        doc.update(time_params)
+        doc.update(timing)
         doc["channels"] = columns
         return orjson.dumps(doc, option=orjson.OPT_SERIALIZE_NUMPY).decode()
-    names = (["t"] if t_arr is not None else []) + list(columns)
+    names = ([TIME_COLUMN] if t_arr is not None else []) + list(columns)
     arrays = ([t_arr] if t_arr is not None else []) + list(columns.values())
-    meta = {"client_seq": str(client_seq), **{k: repr(v) for k, v in time_params.items()}}
-    rb = pa.record_batch([pa.array(a, type=pa.float64()) for a in arrays], names=names)
-    rb = rb.replace_schema_metadata(meta)
-    sink = pa.BufferOutputStream()
-    with pa.ipc.new_stream(sink, rb.schema) as writer:
-        writer.write_batch(rb)
-    return sink.getvalue().to_pybytes()
-
-
-def ws_url(base_url: str, path: str) -> str:
-    if base_url.startswith("https://"):
-        return "wss://" + base_url[len("https://") :].rstrip("/") + path
-    if base_url.startswith("http://"):
-        return "ws://" + base_url[len("http://") :].rstrip("/") + path
-    return base_url.rstrip("/") + path
+    meta = {"client_seq": str(client_seq), **{k: repr(v) for k, v in timing.items()}}
+    return ipc_stream(names, arrays, meta, what="binary frame")
 
 
 @dataclass
 class StreamStats:
+    """What a :class:`FrameStreamer` saw.
+
+    Attributes:
+        connects: connections opened (1 plus the reconnections).
+        frames_sent: frames handed to :meth:`FrameStreamer.send` (each sent again after a
+            reconnection is counted once).
+        duplicates: frames the server answered as already logged.
+        slow_downs: back-pressure notices received.
+        results: the ``result`` messages pushed back, in order of arrival.
+    """
+
     connects: int = 0
     frames_sent: int = 0
     duplicates: int = 0
@@ -90,7 +106,20 @@ class StreamStats:
 
 
 class FrameStreamer:
-    """Streams frames into one actuator and collects the results pushed back."""
+    """Streams frames into one actuator and collects the results pushed back.
+
+    Args:
+        base_url: the server's HTTP(S) address, e.g. ``"http://127.0.0.1:8000"``.
+        api_key: key with the ``ingest`` scope.
+        tail: aircraft tail.
+        actuator_id: actuator of that aircraft.
+        binary: send Arrow frames (needs pyarrow) instead of JSON text.
+        samples: ask for every per-sample output in the results (``?samples=true``).
+        auth_message: authenticate with a first message instead of a header (as browsers must).
+        reconnect_delays_s: waits between reconnection attempts; the last one repeats.
+        max_reconnects: attempts before :meth:`open` gives up with ``ConnectionError``.
+        open_timeout_s: limit on opening a connection and receiving ``ready``.
+    """
 
     def __init__(
         self,
@@ -102,12 +131,12 @@ class FrameStreamer:
         binary: bool = False,
         samples: bool = False,
         auth_message: bool = False,
-        reconnect_delays_s: Sequence[float] = (0.1, 0.25, 0.5, 1.0, 2.0, 5.0),
-        max_reconnects: int = 20,
-        open_timeout_s: float = 10.0,
+        reconnect_delays_s: Sequence[float] = RECONNECT_DELAYS_S,
+        max_reconnects: int = MAX_RECONNECTS,
+        open_timeout_s: float = OPEN_TIMEOUT_S,
     ) -> None:
         query = "?samples=true" if samples else ""
-        self.url = ws_url(base_url, f"/v1/aircraft/{tail}/actuators/{actuator_id}/stream{query}")
+        self.url = ws_url(base_url, f"{actuator_path(tail, actuator_id)}/stream{query}")
         self.api_key = api_key
         self.binary = binary
         self.auth_message = auth_message
@@ -222,7 +251,9 @@ class FrameStreamer:
         code = ws.close_code
         if error is not None or code in REFUSAL_CODES:
             err = error or {}
-            self._failure = StreamRefused(code, err.get("error", "Closed"), err.get("detail", ws.close_reason or ""))
+            self._failure = StreamRefused(
+                code, err.get("error", "Closed"), err.get("detail", ws.close_reason or "")
+            )
         else:
             self._failure = ConnectionError(f"connection closed ({code})")
         self._changed.set()
@@ -251,7 +282,9 @@ class FrameStreamer:
         """Send the next frame; returns its client sequence number. Blocks while the server
         pushes back (its in-flight window is full)."""
         seq = self._next_seq
-        frame = encode_frame(seq, channels, t_s=t_s, t0=t0, sample_rate_hz=sample_rate_hz, binary=self.binary)
+        frame = encode_frame(
+            seq, channels, t_s=t_s, t0=t0, sample_rate_hz=sample_rate_hz, binary=self.binary
+        )
         self._next_seq += 1
         self._unlogged[seq] = frame
         self.stats.frames_sent += 1
@@ -265,7 +298,7 @@ class FrameStreamer:
                 if self._failure is None:
                     self._failure = ConnectionError("connection closed while sending")
 
-    async def drain(self, timeout_s: float = 60.0) -> list[dict[str, Any]]:
+    async def drain(self, timeout_s: float = DRAIN_TIMEOUT_S) -> list[dict[str, Any]]:
         """Wait until every frame sent is logged and its result pushed (reconnecting as
         needed); returns all results received so far, in order."""
         loop = asyncio.get_running_loop()
@@ -287,10 +320,10 @@ class FrameStreamer:
 
 
 def frames_of(
-    t_s: np.ndarray, channels: Mapping[str, np.ndarray], frame_samples: int
-) -> list[tuple[np.ndarray, dict[str, np.ndarray]]]:
-    """Cut a series into frames of ``frame_samples`` samples."""
-    out = []
-    for i in range(0, len(t_s), frame_samples):
-        out.append((t_s[i : i + frame_samples], {k: v[i : i + frame_samples] for k, v in channels.items()}))
-    return out
+    t_s: FloatArray, channels: Mapping[str, FloatArray], frame_samples: int
+) -> list[tuple[FloatArray, dict[str, FloatArray]]]:
+    """Cut a series into frames of ``frame_samples`` samples (the last may be shorter)."""
+    return [
+        (t_s[i : i + frame_samples], {k: v[i : i + frame_samples] for k, v in channels.items()})
+        for i in range(0, len(t_s), frame_samples)
+    ]

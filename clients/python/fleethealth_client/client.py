@@ -1,8 +1,8 @@
-"""HTTP client for the fleethealth API (synchronous and asyncio).
+"""HTTP clients for the fleethealth API (synchronous and asyncio).
 
 Usage::
 
-    from app.client import FleetHealthClient
+    from fleethealth_client import FleetHealthClient
 
     with FleetHealthClient("http://127.0.0.1:8000", api_key) as client:
         client.create_aircraft("FH-001")
@@ -10,286 +10,49 @@ Usage::
         ack = client.post_batch(
             "FH-001", "ema-left", "b-0001",
             {"current": current_a, "voltage": voltage_v},
-            t0=1283532701.0, sample_rate_hz=100.0, fmt="arrow",
+            t0=1283532701.0, sample_rate_hz=100.0, fmt="json",
         )
         health = client.wait_applied("FH-001", "ema-left", ack["seq"], timeout_s=30)
 
-Telemetry encodings (the body of ``POST .../telemetry``):
-
-* ``json``  -- ``{"batch_id", "t" | "t0" + "sample_rate_hz", "channels": {name: [...]}}``, NaN
-  written as ``null``.
-* ``csv``   -- header row of column names (``t`` first when times are given), one row per sample,
-  an empty cell for NaN; batch id, ``t0`` and ``sample_rate_hz`` go in the query string.
-* ``arrow`` -- an Arrow IPC stream of float64 columns (``t`` first when given), NaN kept as a
-  float NaN; batch id, ``t0`` and ``sample_rate_hz`` go in the query string.
-
-Infinite values are refused before sending (the server would answer 400 for them, and JSON has no
-way to write them).
+Telemetry encodings are described in :mod:`fleethealth_client.encoding`; ``fmt="arrow"`` (the
+default, the most compact) and ``fmt="csv"`` need pyarrow (the ``arrow`` extra).
 
 Retries: connection errors, timeouts, 429 and 5xx answers are retried a bounded number of times with
-exponential backoff, always with the same request (and so the same batch id): the server applies a
-batch id once and answers a repeat with the first answer. 4xx answers raise :class:`ApiError` at once.
+exponential backoff (:class:`~fleethealth_client.retry.RetryPolicy`), always with the same request
+(and so the same batch id): the server applies a batch id once and answers a repeat with the first
+answer. 4xx answers raise :class:`~fleethealth_client.errors.ApiError` at once.
 """
 
 from __future__ import annotations
 
 import asyncio
-import io
-import math
-import random
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, cast
-from urllib.parse import quote
 
 import httpx
-import numpy as np
 import orjson
-import pyarrow as pa
-import pyarrow.csv as pa_csv
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
-__all__ = [
-    "ARROW_STREAM_MEDIA_TYPE",
-    "ApiError",
-    "AsyncFleetHealthClient",
-    "EncodedBatch",
-    "FleetHealthClient",
-    "RetryPolicy",
-    "encode_batch",
-    "encode_batch_arrow",
-    "encode_batch_csv",
-    "encode_batch_json",
-]
+from fleethealth_client.encoding import EncodedBatch, encode_batch
+from fleethealth_client.errors import ApiError
+from fleethealth_client.paths import actuator_path, aircraft_path
+from fleethealth_client.retry import RetryPolicy
 
-ARROW_STREAM_MEDIA_TYPE = "application/vnd.apache.arrow.stream"
-BATCH_FORMATS: tuple[str, ...] = ("arrow", "json", "csv")
+__all__ = ["AsyncFleetHealthClient", "FleetHealthClient"]
+
 USER_AGENT = "fleethealth-client/0.1"
+#: Longest ``wait`` the server accepts on a telemetry post (seconds).
 MAX_SERVER_WAIT_S = 60.0
+#: Extra seconds of client timeout beyond a server-side wait, for the answer to travel.
+WAIT_MARGIN_S = 10.0
+#: Cap on the polling interval of ``wait_applied`` (it grows by half each poll).
+MAX_POLL_S = 1.0
+#: HTTP status of a registration that already exists.
+CONFLICT = 409
 
-FloatArray = NDArray[np.float64]
 JsonObject = dict[str, Any]
-
-
-class ApiError(Exception):
-    """An error answer of the API.
-
-    Attributes:
-        status: HTTP status code.
-        error: error type name from the body (e.g. ``"StaleBatch"``), or ``"HTTPError"`` when the
-            body is not the API's error shape.
-        detail: human-readable message from the body.
-    """
-
-    def __init__(self, status: int, error: str, detail: str) -> None:
-        super().__init__(f"{status} {error}: {detail}")
-        self.status = status
-        self.error = error
-        self.detail = detail
-
-    @classmethod
-    def from_response(cls, response: httpx.Response) -> ApiError:
-        error, detail = "HTTPError", response.text[:500]
-        try:
-            body = orjson.loads(response.content)
-        except orjson.JSONDecodeError:
-            body = None
-        if isinstance(body, dict):
-            error = str(body.get("error") or error)
-            raw_detail = body.get("detail", detail)
-            detail = (
-                raw_detail if isinstance(raw_detail, str) else orjson.dumps(raw_detail).decode()
-            )
-        return cls(response.status_code, error, detail)
-
-
-@dataclass(frozen=True)
-class RetryPolicy:
-    """Bounded retries with exponential backoff and jitter.
-
-    Attributes:
-        max_retries: retries after the first attempt (0 disables retries).
-        backoff_s: delay before the first retry; doubled for each further one.
-        max_backoff_s: cap on one delay.
-        retry_statuses: HTTP statuses answered by retrying.
-    """
-
-    max_retries: int = 4
-    backoff_s: float = 0.2
-    max_backoff_s: float = 5.0
-    retry_statuses: frozenset[int] = field(default_factory=lambda: frozenset({429, 502, 503, 504}))
-
-    def delay_s(self, attempt: int) -> float:
-        """Delay before retry number ``attempt`` (0-based), with +-50 % jitter."""
-        base = min(self.max_backoff_s, self.backoff_s * (2.0**attempt))
-        return base * (0.5 + random.random())
-
-    def should_retry_status(self, status: int) -> bool:
-        return status in self.retry_statuses or status >= 500
-
-
-@dataclass(frozen=True)
-class EncodedBatch:
-    """A telemetry batch ready to send: body, content type and query parameters."""
-
-    content: bytes
-    content_type: str
-    params: dict[str, str]
-
-
-# --------------------------------------------------------------------------------------------
-# Encoders
-# --------------------------------------------------------------------------------------------
-
-
-def _as_float_columns(
-    channels: Mapping[str, ArrayLike], t_s: ArrayLike | None
-) -> tuple[FloatArray | None, dict[str, FloatArray]]:
-    if not channels:
-        raise ValueError("a batch needs at least one channel")
-    columns: dict[str, FloatArray] = {}
-    for name, values in channels.items():
-        if not name or name == "t" or any(c in name for c in ',"\r\n'):
-            raise ValueError(f"invalid channel name {name!r}")
-        arr = np.ascontiguousarray(values, dtype=np.float64)
-        if arr.ndim != 1:
-            raise ValueError(f"channel {name!r} must be one-dimensional, got shape {arr.shape}")
-        if np.isinf(arr).any():
-            raise ValueError(f"channel {name!r} holds infinite values (use NaN for missing)")
-        columns[name] = arr
-    lengths = {arr.shape[0] for arr in columns.values()}
-    t_arr: FloatArray | None = None
-    if t_s is not None:
-        t_arr = np.ascontiguousarray(t_s, dtype=np.float64)
-        if t_arr.ndim != 1:
-            raise ValueError(f"t_s must be one-dimensional, got shape {t_arr.shape}")
-        if not np.isfinite(t_arr).all():
-            raise ValueError("t_s must be finite")
-        lengths.add(t_arr.shape[0])
-    if len(lengths) != 1:
-        raise ValueError(f"channels (and t_s) have unequal lengths: {sorted(lengths)}")
-    return t_arr, columns
-
-
-def _time_params(
-    t_arr: FloatArray | None, t0: float | None, sample_rate_hz: float | None
-) -> dict[str, float]:
-    if t_arr is not None:
-        if t0 is not None or sample_rate_hz is not None:
-            raise ValueError("give either t_s or t0 and sample_rate_hz, not both")
-        return {}
-    if t0 is None or sample_rate_hz is None:
-        raise ValueError("give t_s, or both t0 and sample_rate_hz")
-    if not (math.isfinite(t0) and math.isfinite(sample_rate_hz) and sample_rate_hz > 0):
-        raise ValueError("t0 must be finite and sample_rate_hz positive")
-    return {"t0": float(t0), "sample_rate_hz": float(sample_rate_hz)}
-
-
-def _query_params(batch_id: str, time_params: Mapping[str, float]) -> dict[str, str]:
-    params = {"batch_id": batch_id}
-    # repr gives the shortest string that reads back to the same float.
-    params.update({key: repr(value) for key, value in time_params.items()})
-    return params
-
-
-def _table_columns(
-    channels: Mapping[str, ArrayLike],
-    t_s: ArrayLike | None,
-    t0: float | None,
-    sample_rate_hz: float | None,
-) -> tuple[list[str], list[FloatArray], dict[str, float]]:
-    """Column names and arrays of a table body (``t`` first when given), and the time params."""
-    t_arr, columns = _as_float_columns(channels, t_s)
-    time_params = _time_params(t_arr, t0, sample_rate_hz)
-    names = (["t"] if t_arr is not None else []) + list(columns)
-    arrays = ([t_arr] if t_arr is not None else []) + list(columns.values())
-    return names, arrays, time_params
-
-
-def encode_batch_json(
-    batch_id: str,
-    channels: Mapping[str, ArrayLike],
-    *,
-    t_s: ArrayLike | None = None,
-    t0: float | None = None,
-    sample_rate_hz: float | None = None,
-) -> EncodedBatch:
-    """JSON body ``{"batch_id", "t" | "t0"+"sample_rate_hz", "channels"}``; NaN becomes null."""
-    t_arr, columns = _as_float_columns(channels, t_s)
-    body: dict[str, Any] = {"batch_id": batch_id}
-    if t_arr is not None:
-        body["t"] = t_arr
-    body.update(_time_params(t_arr, t0, sample_rate_hz))
-    body["channels"] = columns
-    # orjson writes NaN as null, also inside numpy arrays.
-    content = orjson.dumps(body, option=orjson.OPT_SERIALIZE_NUMPY)
-    return EncodedBatch(content, "application/json", {})
-
-
-def encode_batch_csv(
-    batch_id: str,
-    channels: Mapping[str, ArrayLike],
-    *,
-    t_s: ArrayLike | None = None,
-    t0: float | None = None,
-    sample_rate_hz: float | None = None,
-) -> EncodedBatch:
-    """CSV with a header row (``t`` first when given) and an empty cell for each NaN."""
-    names, arrays, time_params = _table_columns(channels, t_s, t0, sample_rate_hz)
-    # from_pandas=True turns NaN into null, which the CSV writer leaves as an empty cell.
-    table = pa.table(
-        [pa.array(arr, type=pa.float64(), from_pandas=True) for arr in arrays], names=names
-    )
-    sink = io.BytesIO()
-    sink.write((",".join(names) + "\n").encode())
-    pa_csv.write_csv(table, sink, pa_csv.WriteOptions(include_header=False))
-    return EncodedBatch(sink.getvalue(), "text/csv", _query_params(batch_id, time_params))
-
-
-def encode_batch_arrow(
-    batch_id: str,
-    channels: Mapping[str, ArrayLike],
-    *,
-    t_s: ArrayLike | None = None,
-    t0: float | None = None,
-    sample_rate_hz: float | None = None,
-) -> EncodedBatch:
-    """Arrow IPC stream, one record batch of float64 columns (``t`` first when given)."""
-    names, arrays, time_params = _table_columns(channels, t_s, t0, sample_rate_hz)
-    record_batch = pa.record_batch(
-        [pa.array(arr, type=pa.float64()) for arr in arrays], names=names
-    )
-    sink = pa.BufferOutputStream()
-    with pa.ipc.new_stream(sink, record_batch.schema) as writer:
-        writer.write_batch(record_batch)
-    return EncodedBatch(
-        sink.getvalue().to_pybytes(),
-        ARROW_STREAM_MEDIA_TYPE,
-        _query_params(batch_id, time_params),
-    )
-
-
-_ENCODERS = {"json": encode_batch_json, "csv": encode_batch_csv, "arrow": encode_batch_arrow}
-
-
-def encode_batch(
-    fmt: str,
-    batch_id: str,
-    channels: Mapping[str, ArrayLike],
-    *,
-    t_s: ArrayLike | None = None,
-    t0: float | None = None,
-    sample_rate_hz: float | None = None,
-) -> EncodedBatch:
-    """Encode a batch in ``fmt`` (``"arrow"``, ``"json"`` or ``"csv"``)."""
-    try:
-        encoder = _ENCODERS[fmt]
-    except KeyError:
-        raise ValueError(f"unknown format {fmt!r}; use one of {', '.join(BATCH_FORMATS)}") from None
-    if not batch_id:
-        raise ValueError("batch_id must not be empty")
-    return encoder(batch_id, channels, t_s=t_s, t0=t0, sample_rate_hz=sample_rate_hz)
 
 
 # --------------------------------------------------------------------------------------------
@@ -307,14 +70,6 @@ class _Request:
     params: Mapping[str, Any] | None = None
     timeout_s: float | None = None
     ok_statuses: tuple[int, ...] = (200, 201, 202)
-
-
-def _actuator_path(tail: str, actuator_id: str) -> str:
-    return f"/v1/aircraft/{_seg(tail)}/actuators/{_seg(actuator_id)}"
-
-
-def _seg(value: str) -> str:
-    return quote(value, safe="")
 
 
 def _drop_none(params: Mapping[str, Any]) -> dict[str, Any]:
@@ -346,7 +101,7 @@ class _Core:
             body["channels"] = list(channels)
         if estimators is not None:
             body["estimators"] = dict(estimators)
-        return _Request("POST", f"/v1/aircraft/{_seg(tail)}/actuators", json=body)
+        return _Request("POST", f"{aircraft_path(tail)}/actuators", json=body)
 
     @staticmethod
     def post_batch(
@@ -363,12 +118,12 @@ class _Core:
             params["wait"] = repr(float(wait_s))
         return _Request(
             "POST",
-            f"{_actuator_path(tail, actuator_id)}/telemetry",
+            f"{actuator_path(tail, actuator_id)}/telemetry",
             content=encoded.content,
             content_type=encoded.content_type,
             params=params,
             # The server may hold the answer for up to wait_s: never time out before it.
-            timeout_s=max(timeout_s, wait_s + 10.0),
+            timeout_s=max(timeout_s, wait_s + WAIT_MARGIN_S),
         )
 
     @staticmethod
@@ -383,25 +138,25 @@ class _Core:
         params = _drop_none(
             {"estimator": estimator, "from_s": from_s, "to_s": to_s, "limit": limit}
         )
-        return _Request("GET", f"{_actuator_path(tail, actuator_id)}/health/history", params=params)
+        return _Request("GET", f"{actuator_path(tail, actuator_id)}/health/history", params=params)
 
     @staticmethod
     def outputs(
         tail: str, actuator_id: str, estimator: str, from_s: float | None, to_s: float | None
     ) -> _Request:
         params = _drop_none({"estimator": estimator, "from_s": from_s, "to_s": to_s})
-        return _Request("GET", f"{_actuator_path(tail, actuator_id)}/outputs", params=params)
+        return _Request("GET", f"{actuator_path(tail, actuator_id)}/outputs", params=params)
 
     @staticmethod
     def rul(
         tail: str, actuator_id: str, estimator: str | None, from_s: float | None, to_s: float | None
     ) -> _Request:
         params = _drop_none({"estimator": estimator, "from_s": from_s, "to_s": to_s})
-        return _Request("GET", f"{_actuator_path(tail, actuator_id)}/rul", params=params)
+        return _Request("GET", f"{actuator_path(tail, actuator_id)}/rul", params=params)
 
     @staticmethod
     def faults(tail: str, actuator_id: str) -> _Request:
-        return _Request("GET", f"{_actuator_path(tail, actuator_id)}/faults")
+        return _Request("GET", f"{actuator_path(tail, actuator_id)}/faults")
 
     def kwargs(self, request: _Request, default_timeout_s: float) -> dict[str, Any]:
         headers = dict(self.headers)
@@ -434,7 +189,7 @@ def _items(body: JsonObject) -> list[JsonObject]:
 
 
 def _is_already_exists(exc: ApiError) -> bool:
-    return exc.status == 409
+    return exc.status == CONFLICT
 
 
 # --------------------------------------------------------------------------------------------
@@ -515,7 +270,7 @@ class FleetHealthClient:
         return _items(self._send(_Request("GET", "/v1/aircraft")))
 
     def get_aircraft(self, tail: str) -> dict[str, Any]:
-        return self._send(_Request("GET", f"/v1/aircraft/{_seg(tail)}"))
+        return self._send(_Request("GET", aircraft_path(tail)))
 
     def create_actuator(
         self,
@@ -535,10 +290,10 @@ class FleetHealthClient:
             raise
 
     def list_actuators(self, tail: str) -> list[dict[str, Any]]:
-        return _items(self._send(_Request("GET", f"/v1/aircraft/{_seg(tail)}/actuators")))
+        return _items(self._send(_Request("GET", f"{aircraft_path(tail)}/actuators")))
 
     def get_actuator(self, tail: str, actuator_id: str) -> dict[str, Any]:
-        return self._send(_Request("GET", _actuator_path(tail, actuator_id)))
+        return self._send(_Request("GET", actuator_path(tail, actuator_id)))
 
     # -- telemetry ----------------------------------------------------------------------------
 
@@ -574,7 +329,7 @@ class FleetHealthClient:
     # -- health -------------------------------------------------------------------------------
 
     def health(self, tail: str, actuator_id: str) -> dict[str, Any]:
-        return self._send(_Request("GET", f"{_actuator_path(tail, actuator_id)}/health"))
+        return self._send(_Request("GET", f"{actuator_path(tail, actuator_id)}/health"))
 
     def health_history(
         self,
@@ -638,7 +393,7 @@ class FleetHealthClient:
                     f"(last applied {applied})"
                 )
             time.sleep(min(delay, remaining))
-            delay = min(delay * 1.5, 1.0)
+            delay = min(delay * 1.5, MAX_POLL_S)
 
 
 # --------------------------------------------------------------------------------------------
@@ -722,7 +477,7 @@ class AsyncFleetHealthClient:
         return _items(await self._send(_Request("GET", "/v1/aircraft")))
 
     async def get_aircraft(self, tail: str) -> dict[str, Any]:
-        return await self._send(_Request("GET", f"/v1/aircraft/{_seg(tail)}"))
+        return await self._send(_Request("GET", aircraft_path(tail)))
 
     async def create_actuator(
         self,
@@ -743,10 +498,10 @@ class AsyncFleetHealthClient:
             raise
 
     async def list_actuators(self, tail: str) -> list[dict[str, Any]]:
-        return _items(await self._send(_Request("GET", f"/v1/aircraft/{_seg(tail)}/actuators")))
+        return _items(await self._send(_Request("GET", f"{aircraft_path(tail)}/actuators")))
 
     async def get_actuator(self, tail: str, actuator_id: str) -> dict[str, Any]:
-        return await self._send(_Request("GET", _actuator_path(tail, actuator_id)))
+        return await self._send(_Request("GET", actuator_path(tail, actuator_id)))
 
     async def post_batch(
         self,
@@ -772,7 +527,7 @@ class AsyncFleetHealthClient:
         return await self._send(_Core.post_batch(tail, actuator_id, encoded, wait_s, self.timeout))
 
     async def health(self, tail: str, actuator_id: str) -> dict[str, Any]:
-        return await self._send(_Request("GET", f"{_actuator_path(tail, actuator_id)}/health"))
+        return await self._send(_Request("GET", f"{actuator_path(tail, actuator_id)}/health"))
 
     async def health_history(
         self,
@@ -831,4 +586,4 @@ class AsyncFleetHealthClient:
                     f"(last applied {applied})"
                 )
             await asyncio.sleep(min(delay, remaining))
-            delay = min(delay * 1.5, 1.0)
+            delay = min(delay * 1.5, MAX_POLL_S)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import io
+import sys
 from urllib.parse import parse_qs
 
 import httpx
@@ -12,14 +13,14 @@ import orjson
 import pyarrow as pa
 import pyarrow.csv as pa_csv
 import pytest
-
-from app.client import (
+from fleethealth_client import (
     ARROW_STREAM_MEDIA_TYPE,
     ApiError,
     AsyncFleetHealthClient,
     FleetHealthClient,
     RetryPolicy,
     encode_batch,
+    encode_frame,
 )
 
 NO_WAIT_RETRY = RetryPolicy(max_retries=3, backoff_s=0.0, max_backoff_s=0.0)
@@ -288,3 +289,20 @@ def test_async_client_posts_same_body_as_sync() -> None:
     assert bodies[0] == bodies[1]
     assert bodies[0][0] == ARROW_STREAM_MEDIA_TYPE
     assert "wait=2.5" in bodies[0][2] and "batch_id=b-1" in bodies[0][2]
+
+
+@pytest.mark.parametrize("fmt", ["arrow", "csv"])
+def test_arrow_and_csv_without_pyarrow_say_what_to_install(
+    fmt: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # None in sys.modules makes ``import pyarrow`` fail as if it were not installed.
+    monkeypatch.setitem(sys.modules, "pyarrow", None)
+    with pytest.raises(ImportError, match=r'pip install "fleethealth-client\[arrow\]"'):
+        encode_batch(fmt, "b-1", {"current": [1.0]}, t_s=[0.0])
+    with pytest.raises(ImportError, match="binary frame needs pyarrow"):
+        encode_frame(1, {"current": [1.0]}, t_s=[0.0], binary=True)
+    # Invalid batches are still refused for what they are, before pyarrow is asked for.
+    with pytest.raises(ValueError, match="infinite"):
+        encode_batch(fmt, "b-1", {"current": [np.inf]}, t_s=[0.0])
+    body = orjson.loads(encode_batch("json", "b-1", {"current": [np.nan]}, t_s=[0.0]).content)
+    assert body["channels"] == {"current": [None]}

@@ -1,1 +1,0 @@
-"""Command-line tools that feed a running fleethealth server: ``simulate`` and ``replay``."""
