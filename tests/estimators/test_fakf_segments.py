@@ -379,3 +379,40 @@ def test_window_gain_and_dominant_pole_of_a_known_plant() -> None:
     for h in health:
         assert h.indicators["static_gain_v_per_a"] == pytest.approx(gain, rel=0.05)
         assert h.indicators["dominant_pole"] == pytest.approx(dominant, abs=0.03)
+
+
+def test_state_round_trip_mid_window_after_reidentification() -> None:
+    n1, n2, hw = 1000, 2000, 500
+    t, current, voltage = _regime_change(n1, n2, 7)
+    config = fakf.parse_config(
+        {
+            "identification_samples": n1,
+            "health_window_samples": hw,
+            "voltage_rail_low_v": -30.0,
+            "voltage_rail_high_v": 30.0,
+            "idle_close_s": 1.0,
+        }
+    )
+    ref_state, ref, ref_health, ref_events, _ = run(config, t, current, voltage, end_of_run=True)
+    assert any(e.kind == "reidentified" for e in ref_events)
+    cut = 1777  # after the re-identification, inside a window
+    state, out1 = fakf.step(
+        config,
+        fakf.initial_state(config),
+        Batch(t[:cut], {"current": current[:cut], "voltage": voltage[:cut]}),
+    )
+    assert state.n_reidentifications == 1 and state.samples_in_open_window == cut - 1500
+    blob = fakf.dump_state(state)
+    loaded = fakf.load_state(blob)
+    np.testing.assert_array_equal(loaded.vector, state.vector)
+    assert fakf.dump_state(loaded) == blob
+    end, out2 = fakf.step(
+        config,
+        loaded,
+        Batch(t[cut:], {"current": current[cut:], "voltage": voltage[cut:]}, end_of_run=True),
+    )
+    got = np.concatenate([out1.samples["voltage_estimate"], out2.samples["voltage_estimate"]])
+    np.testing.assert_array_equal(got, ref["voltage_estimate"])
+    assert [*out1.health, *out2.health] == ref_health
+    assert [*out1.events, *out2.events] == ref_events
+    np.testing.assert_array_equal(end.vector, ref_state.vector)
