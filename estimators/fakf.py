@@ -22,15 +22,26 @@ Choices where the seed is silent (see docs/methods.md, "FAKF"):
   unit-diagonal Gram matrix above ``condition_limit``), when the current hardly varies
   (std below ``min_current_std``), with fewer than 10 usable rows, or when the fitted model is
   unstable (a pole of ``1 + a0 z^-1 + a1 z^-2`` on or outside the unit circle). A refusal is an
-  ``identification_failed`` event, health windows report "alert" until a model is found, and
-  identification is retried on the next window of the same size (no outputs meanwhile);
+  ``identification_failed`` event, health windows (and the step) report "alert" until a model
+  is found, and identification is retried on the next window of the same size (no outputs
+  meanwhile);
 * ``q = r = "auto"``: half the variance of the identification's one-step residual each, so that
   the steady innovation variance S is close to the residual variance and NIS is near 1 on data
   like those of the identification window;
 * a NaN voltage: predict only (estimate = prior, P grows, innovation NaN);
   a NaN current: the last valid current is held (0 before any);
 * health indicators over fixed windows of ``health_window_samples`` stream samples, with the
-  model re-identified on each window from the same Gram accumulation (``coef_drift``).
+  model re-identified on each window from the same Gram accumulation (``coef_drift`` against
+  the first identified model, static gain and dominant pole of the window model);
+* status ``learning`` while no model exists (never ``ok`` before one).
+
+Beyond the seed (docs/methods.md): optional voltage rails (a sample at or beyond a rail is
+censored: not scored, not in any least-squares row, a pseudo-measurement at the rail; the state
+and the model-only recursion are clamped to the rails); a persistence baseline (repeat the last
+sample) scored against the one-step prior in every window, with re-identification from the
+window just closed when the prior loses (``unknown`` for that window); segments closed by
+``Batch.end_of_run`` or by a gap in stream time longer than ``idle_close_s`` (the partial
+window is reported, the lags cleared, the filter restarted on the next usable voltage).
 """
 
 from __future__ import annotations
