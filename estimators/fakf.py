@@ -725,11 +725,12 @@ def _grade(
     return "ok"
 
 
-_CLOSED_BY = {
-    kern.CLOSE_FULL: "full",
-    kern.CLOSE_END_OF_RUN: "end_of_run",
-    kern.CLOSE_IDLE: "idle_gap",
+CLOSED_BY_CODES = {
+    "full": kern.CLOSE_FULL,
+    "end_of_run": kern.CLOSE_END_OF_RUN,
+    "idle_gap": kern.CLOSE_IDLE,
 }
+"""Values of the ``closed_by`` indicator: why a window ended (indicators are numbers)."""
 
 
 def _health(row: FloatArray, config: FakfConfig, previous: Status | None) -> HealthWindow:
@@ -770,6 +771,7 @@ def _health(row: FloatArray, config: FakfConfig, previous: Status | None) -> Hea
         "prior_to_persistence_rms_ratio": persist_ratio,
         "scored_samples": float(n_innov),
         "censored_samples": float(row[kern.WIN_N_CENSORED]),
+        "closed_by": float(row[kern.WIN_CLOSED_BY]),
         "static_gain_v_per_a": val(kern.WIN_GAIN),
         "dominant_pole": val(kern.WIN_POLE),
     }
@@ -777,9 +779,6 @@ def _health(row: FloatArray, config: FakfConfig, previous: Status | None) -> Hea
         indicators[name] = val(kern.WIN_COEF + i)
     reasons: list[str] = []
     statuses: list[Status] = []
-    closed_by = _CLOSED_BY.get(float(row[kern.WIN_CLOSED_BY]), "full")
-    if closed_by != "full":
-        reasons.append(f"partial window closed by {closed_by.replace('_', ' ')}")
     if row[kern.WIN_READY] != 1.0:
         fail = int(row[kern.WIN_LAST_FAIL])
         if fail:

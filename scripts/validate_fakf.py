@@ -567,7 +567,9 @@ def idle_gap_lines(config: fakf.FakfConfig) -> list[str]:
         for h in out.health
         if not any(a - 1e-9 <= h.t_start_s and h.t_end_s <= b + 1e-9 for a, b in bounds)
     )
-    closed_by_gap = sum(1 for h in out.health if any("idle gap" in x for x in h.reasons))
+    closed_by_gap = sum(
+        1 for h in out.health if h.indicators["closed_by"] == fakf.CLOSED_BY_CODES["idle_gap"]
+    )
     in_windows = sum(h.n_samples for h in out.health)
     last_open = len(t) - in_windows
     return [

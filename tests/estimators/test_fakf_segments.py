@@ -284,8 +284,9 @@ def test_end_of_run_closes_the_partial_window() -> None:
     tail = health[-1]
     assert (tail.t_start_s, tail.t_end_s, tail.n_samples) == (t[2000], t[-1], 340)
     assert tail.indicators["scored_samples"] == 340.0
-    assert any("end of run" in r for r in tail.reasons)
-    assert tail.status == "ok"
+    assert tail.indicators["closed_by"] == fakf.CLOSED_BY_CODES["end_of_run"]
+    assert all(h.indicators["closed_by"] == fakf.CLOSED_BY_CODES["full"] for h in health[:-1])
+    assert tail.status == "ok" and tail.reasons == ()
 
 
 @pytest.mark.parametrize("seed", [0, 1])
@@ -334,7 +335,8 @@ def test_idle_gap_closes_the_window_before_the_next_sample() -> None:
     assert [h.n_samples for h in health] == [500, 500, 500, 300, 500, 300]
     gap = health[3]
     assert (gap.t_start_s, gap.t_end_s) == (t[1500], t[1799])
-    assert any("idle gap" in r for r in gap.reasons)
+    assert gap.indicators["closed_by"] == fakf.CLOSED_BY_CODES["idle_gap"]
+    assert health[-1].indicators["closed_by"] == fakf.CLOSED_BY_CODES["end_of_run"]
     # the filter restarts on the first sample after the gap: estimate = that sample, unscored
     assert s["voltage_estimate"][1800] == voltage[1800]
     assert np.isnan(s["innovation"][1800]) and np.isfinite(s["innovation"][1801])
