@@ -391,6 +391,10 @@ STATE_LAYOUT: dict[str, tuple[int, int]] = {
     "losing_windows": (kern.ST_LOSE_COUNT, 1),
     "n_reidentifications": (kern.ST_N_REIDENT, 1),
     "previous_status_index": (kern.ST_PREV_STATUS, 1),
+    "reference_x": (kern.ST_XR, 2),
+    "reference_covariance_upper": (kern.ST_PR, 3),
+    "reference_q": (kern.ST_BASE_Q, 1),
+    "reference_r": (kern.ST_BASE_R, 1),
 }
 
 
@@ -498,6 +502,10 @@ def _fresh_vector(config: FakfConfig) -> FloatArray:
     vec[kern.ST_T_LAST] = -math.inf
     vec[kern.ST_V_PERSIST] = np.nan
     vec[kern.ST_PREV_STATUS] = -1.0
+    vec[kern.ST_XR : kern.ST_XR + 2] = np.nan
+    vec[kern.ST_PR : kern.ST_PR + 3] = np.nan
+    vec[kern.ST_BASE_Q] = np.nan
+    vec[kern.ST_BASE_R] = np.nan
     if config.coefficients is not None:
         assert not isinstance(config.q, str) and not isinstance(config.r, str)
         vec[kern.ST_READY] = 1.0
@@ -507,6 +515,8 @@ def _fresh_vector(config: FakfConfig) -> FloatArray:
         vec[kern.ST_R] = config.r
         # With no identification residuals, the expected innovation scale is sqrt(q + r).
         vec[kern.ST_REF_RMS] = math.sqrt(config.q + config.r)
+        vec[kern.ST_BASE_Q] = config.q
+        vec[kern.ST_BASE_R] = config.r
         vec[kern.ST_P] = config.p0
         vec[kern.ST_P + 2] = config.p0
     return vec
@@ -551,6 +561,10 @@ def _upgrade_v1(doc: dict[str, Any]) -> dict[str, Any]:
         0.0,  # ST_LOSE_COUNT
         0.0,  # ST_N_REIDENT
         -1.0,  # ST_PREV_STATUS
+        *vec[kern.ST_X : kern.ST_X + 2],  # ST_XR: v1 never re-identified; the reference
+        *vec[kern.ST_P : kern.ST_P + 3],  # ST_PR   filter is the filter in use
+        vec[kern.ST_Q],  # ST_BASE_Q
+        vec[kern.ST_R],  # ST_BASE_R
     ]
     assert kern.ST_LEN_V1 + len(extra) == kern.ST_LEN
     return {**doc, "version": 2, "vector": [_hex(v) for v in vec + extra]}
@@ -755,6 +769,13 @@ def _health(row: FloatArray, config: FakfConfig, previous: Status | None) -> Hea
         if persist_rms is None or prior_paired is None or persist_rms <= 0.0
         else prior_paired / persist_rms
     )
+    ref_resid = val(kern.WIN_REF_RESID_RMS)
+    base_resid = ref
+    ref_resid_ratio = (
+        None
+        if ref_resid is None or base_resid is None or base_resid <= 0.0
+        else ref_resid / base_resid
+    )
     n_innov = int(row[kern.WIN_N_INNOV])
     n_paired = int(row[kern.WIN_N_PAIRED])
     indicators: dict[str, float | None] = {
@@ -766,6 +787,8 @@ def _health(row: FloatArray, config: FakfConfig, previous: Status | None) -> Hea
         "rmse": val(kern.WIN_RMSE),
         "model_mae": val(kern.WIN_MODEL_MAE),
         "coef_drift": val(kern.WIN_DRIFT),
+        "reference_residual_rms": ref_resid,
+        "reference_residual_ratio": ref_resid_ratio,
         "prior_rms_paired": prior_paired,
         "persistence_rms": persist_rms,
         "prior_to_persistence_rms_ratio": persist_ratio,

@@ -104,7 +104,14 @@ ST_W_N_CENSORED = ST_W_N_PAIRED + 1  # window: samples at or beyond a rail
 ST_LOSE_COUNT = ST_W_N_CENSORED + 1  # consecutive full windows the prior lost to persistence
 ST_N_REIDENT = ST_LOSE_COUNT + 1  # re-identifications so far
 ST_PREV_STATUS = ST_N_REIDENT + 1  # index in STATUSES of the last graded window (-1: none)
-ST_LEN = ST_PREV_STATUS + 1
+# The reference filter: the first identified model kept running after a re-identification
+# (only then does it differ from the filter in use); the health consistency indicators come
+# from it, so a new model cannot hide a change against the healthy start.
+ST_XR = ST_PREV_STATUS + 1  # 2: reference filter posterior state
+ST_PR = ST_XR + 2  # 3: reference filter covariance p00, p01, p11
+ST_BASE_Q = ST_PR + 3  # q of the reference model
+ST_BASE_R = ST_BASE_Q + 1  # r of the reference model
+ST_LEN = ST_BASE_R + 1
 
 # reasons an identification fails
 FIT_OK = 0
@@ -150,7 +157,8 @@ WIN_CLOSED_BY = 25  # CLOSE_* code
 WIN_REIDENT = 26  # REID_* code
 WIN_REIDENT_CODE = 27  # FIT_* reason of a refused re-identification
 WIN_LOSE_COUNT = 28  # consecutive losing windows, this one included
-WIN_LEN = 29
+WIN_REF_RESID_RMS = 29  # the reference model's one-step (equation-error) residual RMS
+WIN_LEN = 30
 
 # why a window was closed
 CLOSE_FULL = 0.0
@@ -324,17 +332,26 @@ def acc_solve(
     theta = z / d
     for i in range(N_COEF):
         out[FIT_COEF + i] = theta[i]
-    # SSE = y'y - 2 theta'b + theta' G theta
+    out[FIT_RESID_RMS] = residual_rms(acc, off, theta)
+    pole = max_pole_modulus(theta[0], theta[1])
+    out[FIT_POLE] = pole
+    out[FIT_REASON] = FIT_UNSTABLE if not pole < 1.0 else FIT_OK
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def residual_rms(acc: FloatArray, off: int, theta: FloatArray) -> float:
+    """RMS of the one-step residual ``V_k - phi_k^T theta`` over the rows of an accumulator
+    block, from its sums alone: ``SSE = y'y - 2 theta'b + theta' G theta`` (NaN without rows)."""
+    n = acc[off + ACC_N]
+    if not n > 0.0:
+        return np.nan
     sse = acc[off + ACC_YY]
     for i in range(N_COEF):
         sse -= 2.0 * theta[i] * acc[off + ACC_B + i]
         for j in range(N_COEF):
             sse += theta[i] * acc[off + ACC_G + _TRI[i, j]] * theta[j]
-    out[FIT_RESID_RMS] = math.sqrt(max(sse, 0.0) / n)
-    pole = max_pole_modulus(theta[0], theta[1])
-    out[FIT_POLE] = pole
-    out[FIT_REASON] = FIT_UNSTABLE if not pole < 1.0 else FIT_OK
-    return out
+    return math.sqrt(max(sse, 0.0) / n)
 
 
 @njit(cache=True, error_model="numpy")
@@ -501,6 +518,9 @@ def _close_window(
             row[WIN_DRIFT] = prediction_drift(
                 st, ST_WG, theta_w, st[ST_BASE_COEF : ST_BASE_COEF + N_COEF]
             )
+    if st[ST_READY] == 1.0 and st[ST_WG + ACC_N] >= cfg[CFG_MIN_SCORED]:
+        # how well the reference (first) model still predicts, whatever model is in use
+        row[WIN_REF_RESID_RMS] = residual_rms(st, ST_WG, st[ST_BASE_COEF : ST_BASE_COEF + N_COEF])
     has_event = False
     judged = (
         st[ST_READY] == 1.0
@@ -537,7 +557,8 @@ def _close_window(
                     st[ST_COEF + i] = theta_w[i]
                 st[ST_Q] = q_new
                 st[ST_R] = r_new
-                st[ST_REF_RMS] = fit[FIT_RESID_RMS]
+                # ST_REF_RMS stays the reference model's residual (innovation_rms_ratio comes
+                # from the reference filter); the new fit's residual is in the event
                 st[ST_N_REIDENT] += 1.0
                 st[ST_LOSE_COUNT] = 0.0
                 ev[EV_KIND] = EV_REIDENTIFIED
@@ -551,6 +572,51 @@ def _close_window(
                 row[WIN_REIDENT_CODE] = code
     _reset_window(st)
     return has_event
+
+
+@njit(cache=True, error_model="numpy")
+def _reference_step(
+    st: FloatArray, ih: float, ih1: float, ih2: float, z: float, lo: float, hi: float
+) -> tuple[float, float]:
+    """One step of the reference filter (the first identified model, kept running after a
+    re-identification): the recursion of :func:`fakf_batch` on ``st[ST_XR]``, ``st[ST_PR]`` with
+    the reference coefficients and noise levels; ``z`` is the measured (or rail) voltage, NaN
+    for predict-only. Returns (innovation or NaN, S)."""
+    f0 = -st[ST_BASE_COEF]
+    f1 = -st[ST_BASE_COEF + 1]
+    u = st[ST_BASE_COEF + 2] * ih + st[ST_BASE_COEF + 3] * ih1 + st[ST_BASE_COEF + 4] * ih2
+    q = st[ST_BASE_Q]
+    r = st[ST_BASE_R]
+    x0 = st[ST_XR]
+    x1 = st[ST_XR + 1]
+    p00 = st[ST_PR]
+    p01 = st[ST_PR + 1]
+    p11 = st[ST_PR + 2]
+    xp0 = _clamp(f0 * x0 + f1 * x1 + u, lo, hi)
+    xp1 = x0
+    fp0 = f0 * p00 + f1 * p01
+    fp1 = f0 * p01 + f1 * p11
+    pp00 = fp0 * f0 + fp1 * f1 + q
+    pp01 = fp0
+    pp11 = p00
+    s = pp00 + r
+    if not math.isfinite(z):
+        st[ST_XR] = xp0
+        st[ST_XR + 1] = xp1
+        st[ST_PR] = pp00
+        st[ST_PR + 1] = pp01
+        st[ST_PR + 2] = pp11
+        return np.nan, s
+    e = z - xp0
+    k0 = pp00 / s
+    k1 = pp01 / s
+    c0 = 1.0 - k0
+    st[ST_PR] = c0 * c0 * pp00 + r * k0 * k0
+    st[ST_PR + 1] = c0 * (pp01 - k1 * pp00) + r * k0 * k1
+    st[ST_PR + 2] = k1 * k1 * pp00 - 2.0 * k1 * pp01 + pp11 + r * k1 * k1
+    st[ST_XR] = _clamp(xp0 + k0 * e, lo, hi)
+    st[ST_XR + 1] = _clamp(xp1 + k1 * e, lo, hi)
+    return e, s
 
 
 def fakf_batch(
@@ -668,6 +734,7 @@ def _fakf_kernel(
     ih1 = st[ST_IH_LAG]
     ih2 = st[ST_IH_LAG + 1]
     restart = st[ST_RESTART] == 1.0
+    shadow = st[ST_N_REIDENT] > 0.0  # the reference filter runs apart from the one in use
     v_persist = st[ST_V_PERSIST]
     t_last = st[ST_T_LAST]
     id_count = st[ST_ID_COUNT]
@@ -720,6 +787,10 @@ def _fakf_kernel(
                 ih1 = ih2 = ih
                 est[k] = v0
                 mod[k] = v0
+                if shadow:
+                    st[ST_XR] = st[ST_XR + 1] = v0
+                    st[ST_PR] = st[ST_PR + 2] = p0
+                    st[ST_PR + 1] = 0.0
             else:
                 est[k] = np.nan
                 mod[k] = np.nan
@@ -762,10 +833,15 @@ def _fakf_kernel(
                 x0 = _clamp(xp0 + k0 * e, lo, hi)
                 x1 = _clamp(xp1 + k1 * e, lo, hi)
                 est[k] = x0
+                # consistency statistics: of the reference filter once it runs apart
+                e_ref = e
+                nis = e * e * inv_s
+                if shadow:
+                    e_ref, s_ref = _reference_step(st, ih, ih1, ih2, z, lo, hi)
+                    nis = e_ref * e_ref / s_ref
                 if usable:
                     inn[k] = e
-                    nis = e * e * inv_s
-                    st[ST_W_SUM_INNOV2] += e * e
+                    st[ST_W_SUM_INNOV2] += e_ref * e_ref
                     st[ST_W_SUM_NIS] += nis
                     st[ST_W_N_INNOV] += 1.0
                     if nis >= NIS_LO and nis <= NIS_HI:
@@ -793,6 +869,8 @@ def _fakf_kernel(
                 p_fixed = False
                 inn[k] = np.nan
                 est[k] = x0
+                if shadow:
+                    _reference_step(st, ih, ih1, ih2, np.nan, lo, hi)
         else:
             est[k] = np.nan
             mod[k] = np.nan
@@ -831,6 +909,8 @@ def _fakf_kernel(
                     for j in range(N_COEF):
                         st[ST_BASE_COEF + j] = fit[FIT_COEF + j]
                     st[ST_REF_RMS] = fit[FIT_RESID_RMS]
+                    st[ST_BASE_Q] = q_new
+                    st[ST_BASE_R] = r_new
                     st[ST_LAST_FAIL] = 0.0
                     ev[EV_KIND] = EV_IDENTIFIED
                     ev[EV_Q] = q_new
@@ -865,6 +945,14 @@ def _fakf_kernel(
             if _close_window(st, cfg, tk, CLOSE_FULL, windows[n_win], events[n_ev]):
                 n_ev += 1
                 if events[n_ev - 1, EV_KIND] == EV_REIDENTIFIED:
+                    if not shadow:
+                        # the reference filter starts from the filter as it is now
+                        st[ST_XR] = x0
+                        st[ST_XR + 1] = x1
+                        st[ST_PR] = p00
+                        st[ST_PR + 1] = p01
+                        st[ST_PR + 2] = p11
+                        shadow = True
                     a0 = st[ST_COEF]
                     a1 = st[ST_COEF + 1]
                     f0 = -a0
