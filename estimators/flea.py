@@ -27,7 +27,14 @@ COL_TIME = 0
 COL_MEASURED_LOAD = 6
 CURRENT_COLUMN = {"X": 7, "Y": 8, "Z": 9}
 VOLTAGE_COLUMN = {"X": 10, "Y": 11, "Z": 12}
+MOTOR_TEMPERATURE_COLUMN = {"X": 13, "Y": 14, "Z": 15}
 SCENARIOS = ("Nominal", "Jam", "Spall", "Position")
+STAND_VOLTAGE_RAILS_V = (-25.0, 23.2)
+"""Voltage rails of the FLEA low-rate runs for the FAKF (``voltage_rail_low_v``,
+``voltage_rail_high_v``). The measured motor voltage clips near -25.3 / +23.9 V on motor X and
+-26.0 / +23.5 V on motor Y, the clipped values scattering by a few tenths of a volt around the
+level; the rails sit inside both motors' clip levels, so every clipped sample is censored (a
+few unclipped samples within half a volt of the clip are censored with them)."""
 
 
 @dataclass(frozen=True)
@@ -43,6 +50,7 @@ class FleaRun:
         current_a: driven motor current, shape (n,).
         voltage_v: driven motor voltage, shape (n,).
         load_lbs: measured load, shape (n,).
+        motor_temperature_c: driven motor temperature (deg C, the likely unit), shape (n,).
     """
 
     name: str
@@ -53,6 +61,7 @@ class FleaRun:
     current_a: FloatArray
     voltage_v: FloatArray
     load_lbs: FloatArray
+    motor_temperature_c: FloatArray
 
     def __len__(self) -> int:
         return int(self.t_s.shape[0])
@@ -150,8 +159,10 @@ def read_flea_run(path: str | os.PathLike[str]) -> FleaRun:
     t0, t_s = _parse_time_s([row[COL_TIME] for row in rows])
     c_i, c_v = CURRENT_COLUMN[motor], VOLTAGE_COLUMN[motor]
     # float() reads "NaN" as nan, so missing cells stay missing samples.
+    c_temp = MOTOR_TEMPERATURE_COLUMN[motor]
     values = np.array(
-        [(row[c_i], row[c_v], row[COL_MEASURED_LOAD]) for row in rows], dtype=np.float64
+        [(row[c_i], row[c_v], row[COL_MEASURED_LOAD], row[c_temp]) for row in rows],
+        dtype=np.float64,
     )
     return FleaRun(
         name=name,
@@ -162,6 +173,7 @@ def read_flea_run(path: str | os.PathLike[str]) -> FleaRun:
         current_a=np.ascontiguousarray(values[:, 0]),
         voltage_v=np.ascontiguousarray(values[:, 1]),
         load_lbs=np.ascontiguousarray(values[:, 2]),
+        motor_temperature_c=np.ascontiguousarray(values[:, 3]),
     )
 
 

@@ -49,9 +49,12 @@ class EmaParams:
         lead_m: ball-screw lead (travel per motor revolution).
         screw_efficiency: ball-screw efficiency eta.
         supply_v: bus voltage (controller saturation).
-        profile: "sine" or "trapezoid" position profile.
+        profile: "sine", "trapezoid" or "sweep" (a sine whose frequency rises linearly from
+            ``frequency_hz`` at the start to ``sweep_end_frequency_hz`` at the end of the run)
+            position profile.
         amplitude_m: profile amplitude.
-        frequency_hz: profile frequency.
+        frequency_hz: profile frequency (start frequency of a sweep).
+        sweep_end_frequency_hz: end frequency of a sweep.
         kp_pos_1_s: position loop gain (1/s).
         kp_vel_v_s_rad: speed loop proportional gain.
         ki_vel_v_rad: speed loop integral gain.
@@ -63,6 +66,9 @@ class EmaParams:
         spike_amplitude_v: spikes are uniform in [0.5, 1.5] x this, random sign.
         periodic_amplitude_v: amplitude of the periodic interference.
         periodic_frequency_hz: its frequency.
+        voltage_clip_low_v: the voltage sensor's lower limit: measured values below it read as
+            it (None: no limit). The FLEA voltage channel clips near -25.3 V.
+        voltage_clip_high_v: the upper limit (None: none); FLEA: near +23.9 V.
     """
 
     resistance_ohm: float = 2.0
@@ -74,9 +80,10 @@ class EmaParams:
     lead_m: float = 0.002
     screw_efficiency: float = 0.9
     supply_v: float = 28.0
-    profile: Literal["sine", "trapezoid"] = "sine"
+    profile: Literal["sine", "trapezoid", "sweep"] = "sine"
     amplitude_m: float = 0.025
     frequency_hz: float = 1.0
+    sweep_end_frequency_hz: float = 4.0
     kp_pos_1_s: float = 40.0
     kp_vel_v_s_rad: float = 0.05
     ki_vel_v_rad: float = 2.0
@@ -87,6 +94,8 @@ class EmaParams:
     spike_amplitude_v: float = 8.0
     periodic_amplitude_v: float = 2.0
     periodic_frequency_hz: float = 60.0
+    voltage_clip_low_v: float | None = None
+    voltage_clip_high_v: float | None = None
 
 
 @dataclass(frozen=True)
@@ -122,11 +131,17 @@ class EmaRun:
     seed: int
 
 
-def _profile(t: FloatArray, p: EmaParams) -> tuple[FloatArray, FloatArray]:
+def _profile(t: FloatArray, p: EmaParams, duration_s: float) -> tuple[FloatArray, FloatArray]:
     """Position and velocity references at times ``t``."""
     w = 2.0 * math.pi * p.frequency_hz
     if p.profile == "sine":
         return p.amplitude_m * np.sin(w * t), p.amplitude_m * w * np.cos(w * t)
+    if p.profile == "sweep":
+        # linear chirp: instantaneous frequency f0 + (f1 - f0) t / T
+        rate = (p.sweep_end_frequency_hz - p.frequency_hz) / duration_s
+        phase = 2.0 * math.pi * (p.frequency_hz * t + 0.5 * rate * t * t)
+        w_inst = 2.0 * math.pi * (p.frequency_hz + rate * t)
+        return p.amplitude_m * np.sin(phase), p.amplitude_m * w_inst * np.cos(phase)
     if p.profile == "trapezoid":
         # Triangle wave clipped at 60 % of its peak: ramps with flat dwells.
         phase = (t * p.frequency_hz) % 1.0
@@ -136,7 +151,7 @@ def _profile(t: FloatArray, p: EmaParams) -> tuple[FloatArray, FloatArray]:
         pos = p.amplitude_m * np.clip(tri, -clip, clip) / clip
         vel = np.where(np.abs(tri) < clip, p.amplitude_m * dtri / clip, 0.0)
         return pos, vel
-    raise ValueError(f"profile: expected 'sine' or 'trapezoid', got {p.profile!r}")
+    raise ValueError(f"profile: expected 'sine', 'trapezoid' or 'sweep', got {p.profile!r}")
 
 
 def _discretize(p: EmaParams, dt: float) -> tuple[FloatArray, FloatArray]:
@@ -189,7 +204,7 @@ def simulate_ema(
     n = int(round(duration_s * sample_rate_hz))
     n_ctrl = n * steps_per_sample
     t_ctrl = np.arange(n_ctrl, dtype=np.float64) * dt_ctrl
-    pos_ref, vel_ref = _profile(t_ctrl, p)
+    pos_ref, vel_ref = _profile(t_ctrl, p, n / sample_rate_hz)
     force_n = load_lbs * NEWTON_PER_LBF
     load_torque = np.full(
         n_ctrl, force_n * p.lead_m / (2.0 * math.pi * p.screw_efficiency), dtype=np.float64
@@ -226,6 +241,10 @@ def simulate_ema(
     phase = rng.uniform(0.0, 2.0 * math.pi)
     periodic = p.periodic_amplitude_v * np.sin(2.0 * math.pi * p.periodic_frequency_hz * t + phase)
     v_meas = v_true + gaussian + spikes + periodic
+    if p.voltage_clip_low_v is not None:
+        v_meas = np.maximum(v_meas, p.voltage_clip_low_v)
+    if p.voltage_clip_high_v is not None:
+        v_meas = np.minimum(v_meas, p.voltage_clip_high_v)
     return EmaRun(
         t_s=t,
         current_a=i_meas,

@@ -95,3 +95,50 @@ def test_unknown_parameter_is_refused() -> None:
         simulate_ema(duration_s=1.0, bogus=1.0)
     with pytest.raises(ValueError, match="profile"):
         simulate_ema(duration_s=1.0, profile="square")
+
+
+def test_sweep_profile_rises_in_frequency() -> None:
+    run = simulate_ema(
+        duration_s=20.0,
+        sample_rate_hz=1000.0,
+        profile="sweep",
+        frequency_hz=0.5,
+        sweep_end_frequency_hz=3.0,
+        amplitude_m=0.005,
+    )
+    ref = run.position_ref_m
+    crossings = np.flatnonzero(np.diff(np.sign(ref)) != 0)
+    # zero crossings of a linear chirp: 2 (f0 t + (f1 - f0) t^2 / 2T) in [0, t]
+    first, last = run.t_s < 5.0, run.t_s >= 15.0
+    n_first = np.sum(first[crossings])
+    n_last = np.sum(last[crossings])
+    assert n_first == pytest.approx(2 * (0.5 * 5 + 2.5 * 25 / 40), abs=1)
+    assert n_last == pytest.approx(2 * (0.5 * 5 + 2.5 * (400 - 225) / 40), abs=1)
+    # the position loop follows, lagging more as the frequency rises
+    err = np.abs(run.position_m - ref)
+    assert np.max(err[first]) < 0.1 * run.params.amplitude_m
+    assert np.max(err) < 0.3 * run.params.amplitude_m
+
+
+def test_voltage_sensor_clips_at_its_limits() -> None:
+    run = simulate_ema(
+        duration_s=6.0,
+        sample_rate_hz=100.0,
+        profile="sweep",
+        frequency_hz=0.3,
+        sweep_end_frequency_hz=3.0,
+        voltage_clip_low_v=-25.3,
+        voltage_clip_high_v=23.9,
+    )
+    v = run.voltage_measured_v
+    assert v.min() == -25.3 and v.max() == 23.9
+    assert np.max(np.abs(run.voltage_true_v)) > 25.3  # the true voltage goes past the clip
+    free = (v > -25.3) & (v < 23.9)
+    unclipped = simulate_ema(
+        duration_s=6.0,
+        sample_rate_hz=100.0,
+        profile="sweep",
+        frequency_hz=0.3,
+        sweep_end_frequency_hz=3.0,
+    )
+    np.testing.assert_array_equal(v[free], unclipped.voltage_measured_v[free])

@@ -301,7 +301,7 @@ def test_state_round_trip_is_exact() -> None:
 
 def test_state_version_is_checked() -> None:
     config = fakf.parse_config({})
-    blob = fakf.dump_state(fakf.initial_state(config)).replace(b'"version":1', b'"version":99')
+    blob = fakf.dump_state(fakf.initial_state(config)).replace(b'"version":2', b'"version":99')
     with pytest.raises(StateVersionError, match="99"):
         fakf.load_state(blob)
     with pytest.raises(EstimatorError):
@@ -485,19 +485,31 @@ def test_config_defaults_round_trip() -> None:
         ({"thresholds": {"nis_mean_alert": 1.0}}, "thresholds.nis_mean_alert"),
         ({"thresholds": {"nope": 1.0}}, "thresholds.nope"),
         ({"condition_limit": -3}, "condition_limit"),
+        ({"voltage_rail_low_v": 5.0, "voltage_rail_high_v": -5.0}, "voltage_rail_low_v"),
+        ({"voltage_rail_high_v": float("inf")}, "voltage_rail_high_v"),
+        ({"idle_close_s": 0.0}, "idle_close_s"),
+        ({"reidentification": {"windows": 0}}, "reidentification.windows"),
+        ({"reidentification": {"margin": -0.1}}, "reidentification.margin"),
+        ({"min_graded_samples": 0}, "min_graded_samples"),
     ],
 )
 def test_config_errors_name_the_field(raw, field) -> None:
     with pytest.raises(ConfigError) as info:
         fakf.parse_config(raw)
-    assert str(info.value).startswith(field)
+    message = str(info.value)
+    assert message.startswith("fakf: ")
+    assert field in message
 
 
 def test_registry_and_warm_up() -> None:
     from estimators.registry import get_estimator
 
     kind = get_estimator("fakf")
-    assert kind is fakf and kind.STATE_VERSION == 1
+    assert kind is fakf and kind.STATE_VERSION == 2
+    assert kind.CONFIG_MODEL is fakf.FakfConfig
+    schema = fakf.CONFIG_MODEL.model_json_schema()
+    assert "voltage_rail_low_v" in schema["properties"]
+    assert "V" in schema["properties"]["voltage_rail_low_v"]["description"]
     fakf.warm_up()
 
 
@@ -521,3 +533,71 @@ def test_fakf_beats_raw_and_model_against_true_voltage(load_lbs: float, seed: in
     fakf_err = rmse(s["voltage_estimate"])
     assert fakf_err < 0.9 * rmse(run_.voltage_measured_v)
     assert fakf_err < 0.5 * rmse(s["voltage_model"])
+
+
+# ----------------------------------------------------------------------------- state versions
+
+
+def _v1_fixture_stream() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The stream whose first 1700 samples produced ``data/fakf_state_v1.bin`` (saved with the
+    version-1 code, config identification 500 / window 400), and 800 more samples of it."""
+    rng = np.random.default_rng(5)
+    n = 1700
+    k = np.arange(n)
+    cur = rng.standard_normal(n) + 2 * np.sin(2 * np.pi * k / 200)
+    v = np.zeros(n)
+    for j in range(2, n):
+        v[j] = (
+            0.5 * v[j - 1]
+            - 0.06 * v[j - 2]
+            + cur[j]
+            + 2 * cur[j - 1]
+            - 0.5 * cur[j - 2]
+            + 0.3 * rng.standard_normal()
+        )
+    return k * 0.01, cur, v
+
+
+def test_version_1_state_loads_upgraded_and_steps_like_a_fresh_run() -> None:
+    from pathlib import Path
+
+    blob = (Path(__file__).parent / "data" / "fakf_state_v1.bin").read_bytes()
+    assert b'"version":1' in blob
+    state = fakf.load_state(blob)
+    assert state.version == fakf.STATE_VERSION == 2
+    assert state.vector.shape == (fakf.kern.ST_LEN,)
+    assert state.model_ready and state.reference_coefficients == state.coefficients
+    config = fakf.parse_config({"identification_samples": 500, "health_window_samples": 400})
+    t, cur, v = _v1_fixture_stream()
+    # the same stream run from the start with today's code reaches the same filter state
+    ref_state, _ = fakf.step(config, fakf.initial_state(config), batch_of(t, cur, v))
+    for name in ("coefficients", "x", "covariance_upper", "voltage_lags", "window_gram"):
+        np.testing.assert_array_equal(state.part(name), ref_state.part(name))
+    # and the upgraded state steps on: continue with the stream's own model for 800 samples
+    coef = state.coefficients
+    assert coef is not None
+    rng = np.random.default_rng(99)
+    n2 = 800
+    t2 = t[-1] + 0.01 * np.arange(1, n2 + 1)
+    cur2 = rng.standard_normal(n2)
+    v2 = np.empty(n2)
+    vp, vpp, ip, ipp = v[-1], v[-2], cur[-1], cur[-2]
+    for j in range(n2):
+        v2[j] = -coef.a0 * vp - coef.a1 * vpp + coef.b0 * cur2[j] + coef.b1 * ip + coef.b2 * ipp
+        v2[j] += 0.3 * rng.standard_normal()
+        vpp, vp, ipp, ip = vp, v2[j], ip, cur2[j]
+    s_up, out_up = fakf.step(config, state, batch_of(t2, cur2, v2))
+    s_ref, out_ref = fakf.step(config, ref_state, batch_of(t2, cur2, v2))
+    for name in fakf.SAMPLE_OUTPUTS:
+        np.testing.assert_array_equal(out_up.samples[name], out_ref.samples[name])
+    assert np.all(np.isfinite(out_up.samples["voltage_estimate"]))
+    assert len(out_up.health) == len(out_ref.health) == 2
+    assert out_up.health[0].status == "ok"
+    assert fakf.load_state(fakf.dump_state(s_up)).version == 2
+
+
+def test_unknown_state_versions_are_refused() -> None:
+    blob = fakf.dump_state(fakf.initial_state(fakf.parse_config({})))
+    for version in (b"0", b"3", b'"2"'):
+        with pytest.raises(StateVersionError):
+            fakf.load_state(blob.replace(b'"version":2', b'"version":' + version))

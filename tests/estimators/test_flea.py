@@ -10,7 +10,7 @@ import pytest
 
 from estimators import fakf
 from estimators.base import Batch
-from estimators.flea import driven_motor, list_runs, read_flea_run
+from estimators.flea import STAND_VOLTAGE_RAILS_V, FleaRun, driven_motor, list_runs, read_flea_run
 
 
 def test_driven_motor() -> None:
@@ -52,6 +52,7 @@ def test_reader_on_a_written_file(tmp_path: Path) -> None:
     np.testing.assert_array_equal(run.current_a, [10.0, 11.0, 12.0])
     np.testing.assert_array_equal(run.voltage_v, [-5.0, np.nan, -7.0])
     np.testing.assert_array_equal(run.load_lbs, [6.0, 6.0, 6.0])
+    np.testing.assert_array_equal(run.motor_temperature_c, [13.0, 13.0, 13.0])  # col 13: motor X
 
 
 def test_reader_refuses_a_short_row(tmp_path: Path) -> None:
@@ -98,3 +99,59 @@ def test_fakf_on_real_runs_beats_the_model_only_estimate(flea_path: Path, scenar
     # the README's first figure: model-only MAE 4-10 V, FAKF 40-60 % lower
     assert 3.0 < mae_model < 12.0
     assert mae_fakf < 0.65 * mae_model
+
+
+def _feed(config: fakf.FakfConfig, run: FleaRun, batch_samples: int) -> tuple[list, list, dict]:
+    """A run fed in batches of ``batch_samples``, the last one closing the run."""
+    state = fakf.initial_state(config)
+    health, events, est = [], [], []
+    n = len(run)
+    for lo in range(0, n, batch_samples):
+        hi = min(lo + batch_samples, n)
+        batch = Batch(
+            t_s=run.t_s[lo:hi],
+            channels={"current": run.current_a[lo:hi], "voltage": run.voltage_v[lo:hi]},
+            end_of_run=hi == n,
+        )
+        state, out = fakf.step(config, state, batch)
+        health.extend(out.health)
+        events.extend(out.events)
+        est.append(out.samples["voltage_estimate"])
+    return health, events, {"voltage_estimate": np.concatenate(est)}
+
+
+@pytest.mark.flea
+def test_flea_trapezoid_jam_run_stays_within_the_stand_rails(flea_path: Path) -> None:
+    entry = next(
+        e
+        for e in list_runs(flea_path)
+        if e.path.name.startswith("BatchProfile_trap22_2010_09_03_16_01_40_Jam")
+    )
+    run = read_flea_run(entry.path)
+    lo, hi = STAND_VOLTAGE_RAILS_V
+    railed = fakf.parse_config({"voltage_rail_low_v": lo, "voltage_rail_high_v": hi})
+    health, events, s = _feed(railed, run, 700)
+    est = s["voltage_estimate"][np.isfinite(s["voltage_estimate"])]
+    assert est.min() >= lo and est.max() <= hi
+    assert sum(h.indicators["censored_samples"] for h in health) > 0
+    # every sample of the closed run is in one window
+    assert sum(h.n_samples for h in health) == len(run)
+    # the first window after identification loses to persistence and the model is replaced
+    assert "reidentified" in [e.kind for e in events]
+    # without rails the estimate of this run goes far past the clip level
+    _, _, s_plain = _feed(fakf.parse_config({}), run, 700)
+    assert np.nanmax(np.abs(s_plain["voltage_estimate"])) > 30.0
+
+
+@pytest.mark.flea
+def test_flea_run_split_like_a_replay_gives_the_one_batch_windows(flea_path: Path) -> None:
+    entry = next(e for e in list_runs(flea_path) if e.profile_shape == "sine")
+    run = read_flea_run(entry.path)
+    lo, hi = STAND_VOLTAGE_RAILS_V
+    config = fakf.parse_config({"voltage_rail_low_v": lo, "voltage_rail_high_v": hi})
+    one = _feed(config, run, len(run))
+    split = _feed(config, run, 700)
+    assert one[0] == split[0] and one[1] == split[1]
+    np.testing.assert_array_equal(one[2]["voltage_estimate"], split[2]["voltage_estimate"])
+    assert sum(h.n_samples for h in one[0]) == len(run)
+    assert one[0][-1].n_samples == len(run) % 1000
