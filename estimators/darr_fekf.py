@@ -381,7 +381,7 @@ class ReferenceModel(EstimatorConfigModel):
         "is compared with it instead of the model's expected level"
     )
     noise_std: ChannelValues = Field(
-        default_factory=ChannelValues,
+        default_factory=lambda: ChannelValues.model_validate({}),
         description="measurement noise sd by channel on the reference run; a calibration window "
         "noisier than noise_ratio times its variance is refused",
     )
@@ -531,7 +531,9 @@ class SubsystemModel(EstimatorConfigModel):
         DEFAULT_P0_PARAMETER,
         description="initial relative variance (number, or object by parameter)",
     )
-    fuzzy: FuzzyModel = Field(default_factory=FuzzyModel, description="FEKF settings")
+    fuzzy: FuzzyModel = Field(
+        default_factory=lambda: FuzzyModel.model_validate({}), description="FEKF settings"
+    )
     bounds: tuple[_Positive, _Positive] = Field(
         (1.0e-3, 1.0e3), description="parameter limits relative to nominal, low < 1 < high"
     )
@@ -704,16 +706,16 @@ class IsolationModel(EstimatorConfigModel):
 class DarrFekfConfigModel(EstimatorConfigModel):
     """Configuration of the darr_fekf estimator (``docs/methods-darr-fekf.md``, section 9)."""
 
-    channels: ChannelsModel = Field(default_factory=ChannelsModel)
+    channels: ChannelsModel = Field(default_factory=lambda: ChannelsModel.model_validate({}))
     sample_period_s: _Positive = Field(1.0e-4, description="nominal sample period, s")
-    parameters: ParametersModel = Field(default_factory=ParametersModel)
+    parameters: ParametersModel = Field(default_factory=lambda: ParametersModel.model_validate({}))
     differentiator_window_s: _Positive = Field(
         0.05, description="smoother span, s (the residuals' lag is half of it)"
     )
     max_missing_fraction: float = Field(
         0.1, ge=0.0, lt=1.0, description="most held (missing) samples in a window"
     )
-    thresholds: ThresholdsModel = Field(default_factory=ThresholdsModel)
+    thresholds: ThresholdsModel = Field(default_factory=lambda: ThresholdsModel.model_validate({}))
     min_duration_s: _NonNegative = Field(
         0.002, description="time above threshold before a residual counts, s"
     )
@@ -722,7 +724,8 @@ class DarrFekfConfigModel(EstimatorConfigModel):
         ("k_q", "k_c"), description="parameters known to be right (not in candidate sets)"
     )
     noise_std: ChannelValues = Field(
-        default_factory=ChannelValues, description="known noise sd by channel (else calibrated)"
+        default_factory=lambda: ChannelValues.model_validate({}),
+        description="known noise sd by channel (else calibrated)",
     )
     max_candidate_size: int = Field(3, ge=1, le=6, strict=True, description="largest set")
     max_candidates: int = Field(100, ge=1, le=10_000, strict=True, description="most sets")
@@ -732,8 +735,8 @@ class DarrFekfConfigModel(EstimatorConfigModel):
     health_window_samples: int = Field(
         10_000, ge=1, le=100_000_000, strict=True, description="health window, samples"
     )
-    sensors: SensorChecksModel = Field(default_factory=SensorChecksModel)
-    isolation: IsolationModel = Field(default_factory=IsolationModel)
+    sensors: SensorChecksModel = Field(default_factory=lambda: SensorChecksModel.model_validate({}))
+    isolation: IsolationModel = Field(default_factory=lambda: IsolationModel.model_validate({}))
 
     @model_validator(mode="after")
     def _calibration_window(self) -> DarrFekfConfigModel:
@@ -765,7 +768,7 @@ class SubsystemConfig:
     p0_state: float | Literal["auto"] = "auto"
     q_parameters: tuple[float, ...] = ()
     p0_parameters: tuple[float, ...] = ()
-    fuzzy: FuzzyModel = field(default_factory=FuzzyModel)
+    fuzzy: FuzzyModel = field(default_factory=lambda: FuzzyModel.model_validate({}))
     bounds: tuple[float, float] = (1.0e-3, 1.0e3)
 
 
@@ -1070,9 +1073,9 @@ def _compile(config: DarrFekfConfig) -> _Compiled:
             thr.reference.residual_rms.as_tuple()
         )
         ref_noise = thr.reference.noise_std.as_dict()
-        for c_idx, c in enumerate(CHANNELS):
-            if c in ref_noise:
-                cfg[kern.CFG_REF_NOISE + c_idx] = ref_noise[c] ** 2
+        for c_idx, name in enumerate(CHANNELS):
+            if name in ref_noise:
+                cfg[kern.CFG_REF_NOISE + c_idx] = ref_noise[name] ** 2
     sens = config.sensors
     cfg[kern.CFG_SENSOR_LAMBDA] = math.exp(-config.sample_period_s / sens.noise_window_s)
     cfg[kern.CFG_STUCK_N] = (
@@ -1087,10 +1090,10 @@ def _compile(config: DarrFekfConfig) -> _Compiled:
     weights = kern.smoother_weights(box, config.sample_period_s, kern.MAX_ORDER)
     res_gain2 = np.zeros((kern.N_RES, kern.N_CHAN))
     for l_idx, res in enumerate(RESIDUALS):
-        for c_idx, c in enumerate(CHANNELS):
+        for c_idx, name in enumerate(CHANNELS):
             g = np.zeros(weights.shape[1])
             for term in DARR_TERMS[res]:
-                if term.channel == c:
+                if term.channel == name:
                     g += _monomial(term, config.parameters) * weights[term.order]
             res_gain2[l_idx, c_idx] = float(g @ g)
     # fit column of parameter p: sum over the terms holding p of e_p c_j s_j

@@ -221,10 +221,11 @@ def generate_scenarios(
             )
         )
     sim_seed += 100
-    for kind in ("bias", "drift", "stuck", "noise"):
+    sensor_kinds: tuple[SensorFaultKind, ...] = ("bias", "drift", "stuck", "noise")
+    for kind in sensor_kinds:
         for i in range(n_per_sensor_kind):
             onset = float(rng.uniform(lo_on, hi_on))
-            sf, text = _sensor_fault(rng, kind, onset)  # type: ignore[arg-type]
+            sf, text = _sensor_fault(rng, kind, onset)
             out.append(
                 Scenario(
                     text,
@@ -255,8 +256,8 @@ def generate_scenarios(
                 )
             )
         else:
-            kind: SensorFaultKind = "bias" if rng.random() < 0.5 else "drift"
-            sf, text = _sensor_fault(rng, kind, onset)
+            cal_kind: SensorFaultKind = "bias" if rng.random() < 0.5 else "drift"
+            sf, text = _sensor_fault(rng, cal_kind, onset)
             out.append(
                 Scenario(
                     "in calibration: " + text,
@@ -266,7 +267,7 @@ def generate_scenarios(
                     duration_s,
                     onset,
                     sensor_faults=(sf,),
-                    true_members=(f"sensor:{sf.channel}:{kind}",),
+                    true_members=(f"sensor:{sf.channel}:{cal_kind}",),
                 )
             )
     return out
