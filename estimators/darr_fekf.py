@@ -1754,11 +1754,11 @@ def _fit_columns(member: str) -> list[int]:
 
 
 def _hypothesis_pool(config: DarrFekfConfig, vector: Sequence[int]) -> list[tuple[str, ...]]:
-    """Sets the fit compares: minimal sets of members (parameters outside the set gains,
-    sensor bias and drift) each touching the coherence vector, whose signatures together cover
-    it, up to ``min(max_candidate_size, 2)`` members. Unlike the exact-match candidate sets,
-    a member may predict a relation that stayed below its threshold (a sensor bias whose effect
-    on one relation is small); the fit then judges by magnitude."""
+    """Sets the fit compares: sets of members (parameters outside the set gains, sensor bias
+    and drift), each member touching the coherence vector, whose signatures together cover it,
+    up to ``min(max_candidate_size, 2)`` members. Unlike the exact-match candidate sets, a
+    member may predict a relation that stayed below its threshold (a sensor bias whose effect
+    on one relation is small): the fit judges by magnitude."""
     target = [bool(c) for c in vector]
     members = [p for p in PARAMETER_NAMES if p not in config.set_gains] + [
         sensor_fault_name(c, k) for c in CHANNELS for k in ("bias", "drift")
@@ -1772,17 +1772,8 @@ def _hypothesis_pool(config: DarrFekfConfig, vector: Sequence[int]) -> list[tupl
             covered = [False] * kern.N_RES
             for m in combo:
                 covered = [a or bool(b) for a, b in zip(covered, ALL_SIGNATURES[m], strict=True)]
-            if not all(c or not t for c, t in zip(covered, target, strict=True)):
-                continue
-            if size > 1 and any(
-                all(
-                    any(bool(ALL_SIGNATURES[o][i]) for o in combo if o != m) or not target[i]
-                    for i in range(kern.N_RES)
-                )
-                for m in combo
-            ):
-                continue  # not minimal
-            pool.append(combo)
+            if all(c or not t for c, t in zip(covered, target, strict=True)):
+                pool.append(combo)
     return pool
 
 
@@ -1796,8 +1787,10 @@ def isolation_detail(config: DarrFekfConfig, state: DarrFekfState) -> dict[str, 
     ramp ``phi t``; a bias b of each channel (``phi = sum_(order-0 terms) c_j``, theta = b) and
     a drift (ramp: ``sum_(order 0) c_j t + sum_(order 1) c_j``). For each set S the residual sum
     of squares after the least-squares fit on S's columns gives its mean squared standardized
-    residual ``m_S`` (1: noise only). S is consistent when ``m_S <= max(consistency_floor,
-    consistency_ratio * min m)``. Explanation: ``sensor`` when a sensor's own signal is
+    residual ``m_S`` (1: noise only). S is within the level when ``m_S <=
+    max(consistency_floor, consistency_ratio * min m)``, and consistent when, besides, no
+    proper subset of it is (parsimony: {A_h} within the level makes {A_h, P_L bias} add
+    nothing). Explanation, over the consistent sets: ``sensor`` when a sensor's own signal is
     flagged, or when every consistent set holds a sensor fault; ``parameter`` when none does;
     ``ambiguous`` otherwise; ``pending`` before ``min_fit_s`` of fault.
     """
@@ -1850,9 +1843,17 @@ def isolation_detail(config: DarrFekfConfig, state: DarrFekfState) -> dict[str, 
     best = results[0]["mean_sq"] if results else math.inf
     iso = config.isolation
     level = max(iso.consistency_floor, iso.consistency_ratio * best)
+    within = {tuple(h["set"]) for h in results if h["mean_sq"] <= level}
     for h in results:
-        h["consistent"] = bool(h["mean_sq"] <= level)
+        # parsimony: a set within the level whose proper subset is within it too adds nothing
+        h["within_level"] = tuple(h["set"]) in within
+        h["consistent"] = h["within_level"] and not any(
+            sub in within
+            for size in range(1, len(h["set"]))
+            for sub in itertools.combinations(h["set"], size)
+        )
     consistent = [h for h in results if h["consistent"]]
+    results.sort(key=lambda h: (not h["consistent"], h["mean_sq"], len(h["set"]), h["set"]))
     detail["no_fault_mean_sq"] = total / denom
     detail["consistency_level"] = level
     if fit_s < iso.min_fit_s or not consistent:
