@@ -2,7 +2,8 @@
 ``docs/validation.md`` (between ``<!-- darr_fekf:begin -->`` and ``<!-- darr_fekf:end -->``; the
 rest of the file is kept).
 
-Run: ``.venv/bin/python scripts/validate_darr_fekf.py`` (about a minute on two cores).
+Run: ``.venv/bin/python scripts/validate_darr_fekf.py`` (about eight minutes on two cores; the
+randomized part is ``scripts/validate_darr_randomized.py``).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from validate_darr_randomized import randomized_lines
 
 from estimators import darr_fekf as m
 from estimators.base import Batch, EstimatorEvent
@@ -358,6 +360,12 @@ def main() -> int:
         "### False alarms",
         "",
         *false_alarm_lines(),
+        "",
+        "### Randomized scenarios beyond the seed",
+        "",
+        *randomized_lines((0, 1, 2)),
+        "",
+        *randomized_lines((0, 1, 2), "hard"),
         "",
         f"Run time of this script: {time.perf_counter() - start:.0f} s.",
         END,

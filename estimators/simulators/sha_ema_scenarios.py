@@ -26,6 +26,7 @@ import numpy as np
 
 from estimators.simulators.sha_ema import (
     DEFAULT_NOISE_STD,
+    Excitation,
     FaultSchedule,
     ShaEmaParams,
     ShaEmaTruth,
@@ -114,11 +115,15 @@ class Scenario:
     parameter_faults: tuple[FaultSchedule, ...] = ()
     sensor_faults: tuple[SensorFault, ...] = ()
     true_members: tuple[str, ...] = field(default=())
+    excitation: Excitation | None = None
 
     def simulate(self) -> tuple[FloatArray, dict[str, FloatArray], ShaEmaTruth]:
         """Run the plant and apply the sensor faults."""
         t, ch, truth = simulate_sha_ema(
-            self.duration_s, faults=self.parameter_faults, seed=self.seed
+            self.duration_s,
+            faults=self.parameter_faults,
+            seed=self.seed,
+            excitation=self.excitation,
         )
         if self.sensor_faults:
             ch = apply_sensor_faults(t, ch, self.sensor_faults, seed=self.seed)
@@ -142,11 +147,45 @@ SENSOR_RANGES: dict[str, tuple[float, float]] = {
     "drift": (15.0, 100.0),
     "noise": (2.0, 5.0),
 }
+# the "hard" set: faults near the detection limit, and a random operating profile
+PARAMETER_RANGES_HARD: dict[str, tuple[float, float]] = {
+    "a_h": (0.88, 0.95),
+    "b_h": (0.6, 0.85),
+    "r_il": (0.5, 0.8),
+    "c_hj": (1.2, 1.5),
+    "k_s": (0.6, 0.8),
+    "f_r": (1.15, 1.4),
+}
+SENSOR_RANGES_HARD: dict[str, tuple[float, float]] = {
+    "bias": (4.0, 15.0),
+    "drift": (4.0, 15.0),
+    "noise": (1.0, 2.0),
+}
 
 
-def _parameter_fault(rng: np.random.Generator, onset: float) -> tuple[FaultSchedule, str]:
-    name = str(rng.choice(sorted(PARAMETER_RANGES)))
-    lo, hi = PARAMETER_RANGES[name]
+def random_excitation(rng: np.random.Generator) -> Excitation:
+    """An operating profile other than the default: position amplitudes x0.4-1.5, frequencies
+    x0.5-2, valve dither on or off, other motor-voltage offset and sine."""
+    d = Excitation()
+    amp = float(rng.uniform(0.4, 1.5))
+    freq = float(rng.uniform(0.5, 2.0))
+    return Excitation(
+        position_amplitudes_m=tuple(a * amp for a in d.position_amplitudes_m),
+        position_frequencies_hz=tuple(f * freq for f in d.position_frequencies_hz),
+        valve_current_a=d.valve_current_a * float(rng.uniform(0.5, 1.5)),
+        valve_frequency_hz=float(rng.uniform(2.0, 5.0)),
+        dither_current_a=d.dither_current_a if rng.random() < 0.5 else 0.0,
+        voltage_offset_v=float(rng.uniform(4.0, 12.0)),
+        voltage_amplitude_v=float(rng.uniform(2.0, 8.0)),
+        voltage_frequency_hz=float(rng.uniform(1.0, 4.0)),
+    )
+
+
+def _parameter_fault(
+    rng: np.random.Generator, onset: float, ranges: Mapping[str, tuple[float, float]]
+) -> tuple[FaultSchedule, str]:
+    name = str(rng.choice(sorted(ranges)))
+    lo, hi = ranges[name]
     value = getattr(ShaEmaParams(), name) * float(rng.uniform(lo, hi))
     if rng.random() < 0.5:
         return FaultSchedule(
@@ -160,13 +199,16 @@ def _parameter_fault(rng: np.random.Generator, onset: float) -> tuple[FaultSched
 
 
 def _sensor_fault(
-    rng: np.random.Generator, kind: SensorFaultKind, onset: float
+    rng: np.random.Generator,
+    kind: SensorFaultKind,
+    onset: float,
+    ranges: Mapping[str, tuple[float, float]],
 ) -> tuple[SensorFault, str]:
     channel = str(rng.choice(SENSORS))
     sd = DEFAULT_NOISE_STD[channel]
     if kind == "stuck":
         return SensorFault(channel, "stuck", onset), f"{channel} stuck"
-    lo, hi = SENSOR_RANGES[kind]
+    lo, hi = ranges[kind]
     k = float(rng.uniform(lo, hi))
     if kind == "noise":
         return SensorFault(channel, "noise", onset, k), f"{channel} noise +{k:.1f} sd"
@@ -187,27 +229,46 @@ def generate_scenarios(
     n_calibration: int = 10,
     duration_s: float = 8.0,
     calibration_s: float = 3.0,
+    difficulty: Literal["default", "hard"] = "default",
 ) -> list[Scenario]:
     """Randomized cases, reproducible from ``seed``.
+
+    ``difficulty="hard"``: fault sizes near the detection limit (``*_RANGES_HARD``) and a
+    random operating profile per run (:func:`random_excitation`).
 
     Onsets of ordinary faults are uniform in [calibration_s + 0.5, duration_s - 3] s (at least
     3 s of fault to judge isolation); calibration faults start uniform in [-0.5,
     calibration_s - 0.6] s (a negative onset: present from the first sample), half of them
     parameter faults and half sensor bias or drift.
     """
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(seed if difficulty == "default" else seed + 50_000)
+    hard = difficulty == "hard"
+    p_ranges = PARAMETER_RANGES_HARD if hard else PARAMETER_RANGES
+    s_ranges = SENSOR_RANGES_HARD if hard else SENSOR_RANGES
+
+    def ex() -> Excitation | None:
+        return random_excitation(rng) if hard else None
+
     out: list[Scenario] = []
-    sim_seed = 1000 * seed
+    sim_seed = 1000 * seed + (500 if hard else 0)
     lo_on = calibration_s + 0.5
     hi_on = max(lo_on, duration_s - 3.0)
     for i in range(n_fault_free):
         out.append(
-            Scenario(f"fault-free #{i}", "fault_free", "none", sim_seed + i, duration_s, math.nan)
+            Scenario(
+                f"fault-free #{i}",
+                "fault_free",
+                "none",
+                sim_seed + i,
+                duration_s,
+                math.nan,
+                excitation=ex(),
+            )
         )
     sim_seed += 100
     for i in range(n_parameter):
         onset = float(rng.uniform(lo_on, hi_on))
-        fault, text = _parameter_fault(rng, onset)
+        fault, text = _parameter_fault(rng, onset, p_ranges)
         out.append(
             Scenario(
                 text,
@@ -218,6 +279,7 @@ def generate_scenarios(
                 onset,
                 parameter_faults=(fault,),
                 true_members=(fault.parameter,),
+                excitation=ex(),
             )
         )
     sim_seed += 100
@@ -225,7 +287,7 @@ def generate_scenarios(
     for kind in sensor_kinds:
         for i in range(n_per_sensor_kind):
             onset = float(rng.uniform(lo_on, hi_on))
-            sf, text = _sensor_fault(rng, kind, onset)
+            sf, text = _sensor_fault(rng, kind, onset, s_ranges)
             out.append(
                 Scenario(
                     text,
@@ -236,13 +298,14 @@ def generate_scenarios(
                     onset,
                     sensor_faults=(sf,),
                     true_members=(f"sensor:{sf.channel}:{kind}",),
+                    excitation=ex(),
                 )
             )
         sim_seed += 100
     for i in range(n_calibration):
         onset = float(rng.uniform(-0.5, calibration_s - 0.6))
         if i % 2 == 0:
-            fault, text = _parameter_fault(rng, onset)
+            fault, text = _parameter_fault(rng, onset, p_ranges)
             out.append(
                 Scenario(
                     "in calibration: " + text,
@@ -253,11 +316,12 @@ def generate_scenarios(
                     onset,
                     parameter_faults=(fault,),
                     true_members=(fault.parameter,),
+                    excitation=ex(),
                 )
             )
         else:
             cal_kind: SensorFaultKind = "bias" if rng.random() < 0.5 else "drift"
-            sf, text = _sensor_fault(rng, cal_kind, onset)
+            sf, text = _sensor_fault(rng, cal_kind, onset, s_ranges)
             out.append(
                 Scenario(
                     "in calibration: " + text,
@@ -268,6 +332,7 @@ def generate_scenarios(
                     onset,
                     sensor_faults=(sf,),
                     true_members=(f"sensor:{sf.channel}:{cal_kind}",),
+                    excitation=ex(),
                 )
             )
     return out
