@@ -686,19 +686,38 @@ class SensorChecksModel(EstimatorConfigModel):
 class IsolationModel(EstimatorConfigModel):
     """The fit that tells sensor from parameter faults among the candidate sets."""
 
+    @model_validator(mode="after")
+    def _window(self) -> IsolationModel:
+        if self.min_fit_s >= self.window_s:
+            raise ValueError("min_fit_s: must be shorter than window_s")
+        return self
+
     fit_decimation: int = Field(
         10, ge=1, le=10_000, strict=True, description="one fit sample in this many stream samples"
     )
     min_fit_s: _Positive = Field(
         0.3, description="fault time before the fit decides between the candidate sets, s"
     )
+    window_s: _Positive = Field(
+        2.0,
+        description="time constant of the fit's exponential forgetting, s: the fit describes "
+        "about the last window_s of the fault",
+    )
     consistency_ratio: _Ratio = Field(
         1.5,
         description="a candidate set is consistent when its mean squared standardized "
         "residual after the fit is within this factor of the best set's",
     )
+    consistency_share: float = Field(
+        0.03,
+        ge=0.0,
+        lt=1.0,
+        description="... or within this share of the fault's mean squared residual (no-fault "
+        "fit minus best) above the best: a larger set must explain a noticeable part of the "
+        "fault, not only the model's small misfit of a large fault",
+    )
     consistency_floor: _Positive = Field(
-        2.0,
+        1.5,
         description="... or below this mean squared standardized residual (1: noise only)",
     )
 
@@ -1085,6 +1104,9 @@ def _compile(config: DarrFekfConfig) -> _Compiled:
     cfg[kern.CFG_SENSOR_MIN_N] = 3.0 * sens.noise_window_s / config.sample_period_s
     cfg[kern.CFG_NOISE_PERSIST] = max(1, round(sens.noise_persist_s / config.sample_period_s))
     cfg[kern.CFG_FIT_DEC] = config.isolation.fit_decimation
+    cfg[kern.CFG_FIT_LAMBDA] = math.exp(
+        -config.isolation.fit_decimation * config.sample_period_s / config.isolation.window_s
+    )
     # expected residual variance per unit channel noise variance: squared norm of the FIR
     # weights each residual puts on each channel (its terms' derivative filters, summed)
     weights = kern.smoother_weights(box, config.sample_period_s, kern.MAX_ORDER)
@@ -1787,18 +1809,19 @@ def isolation_detail(config: DarrFekfConfig, state: DarrFekfState) -> dict[str, 
     ramp ``phi t``; a bias b of each channel (``phi = sum_(order-0 terms) c_j``, theta = b) and
     a drift (ramp: ``sum_(order 0) c_j t + sum_(order 1) c_j``). For each set S the residual sum
     of squares after the least-squares fit on S's columns gives its mean squared standardized
-    residual ``m_S`` (1: noise only). S is within the level when ``m_S <=
-    max(consistency_floor, consistency_ratio * min m)``, and consistent when, besides, no
-    proper subset of it is (parsimony: {A_h} within the level makes {A_h, P_L bias} add
-    nothing). Explanation, over the consistent sets: ``sensor`` when a sensor's own signal is
-    flagged, or when every consistent set holds a sensor fault; ``parameter`` when none does;
-    ``ambiguous`` otherwise; ``pending`` before ``min_fit_s`` of fault.
+    residual ``m_S`` (1: noise only). S is within the level when ``m_S <= max(consistency_floor,
+    consistency_ratio * min m, min m + consistency_share * (m_0 - min m))`` (``m_0``: no fault
+    set), and consistent when, besides, no proper subset of it is (parsimony: {A_h} within the
+    level makes {A_h, P_L bias} add nothing). Explanation, over the consistent sets:
+    ``sensor`` when a sensor's own signal is flagged, or when every consistent set holds a
+    sensor fault; ``parameter`` when none does; ``ambiguous`` otherwise; ``pending`` before
+    ``min_fit_s`` of fault.
     """
     if not state.fault_active:
         return None
     flags = state.sensor_flags
     vector = state.coherence_vector
-    n_fit = state.value("fit_samples")
+    n_fit = state.value("fit_samples")  # effective count under the forgetting
     fit_s = n_fit * config.isolation.fit_decimation * config.sample_period_s
     detail: dict[str, Any] = {"fit_s": fit_s, "sensor_flags": dict(flags)}
     if flags:
@@ -1842,7 +1865,12 @@ def isolation_detail(config: DarrFekfConfig, state: DarrFekfState) -> dict[str, 
     results.sort(key=lambda h: (h["mean_sq"], len(h["set"]), h["set"]))
     best = results[0]["mean_sq"] if results else math.inf
     iso = config.isolation
-    level = max(iso.consistency_floor, iso.consistency_ratio * best)
+    no_fault = total / denom
+    level = max(
+        iso.consistency_floor,
+        iso.consistency_ratio * best,
+        best + iso.consistency_share * max(no_fault - best, 0.0),
+    )
     within = {tuple(h["set"]) for h in results if h["mean_sq"] <= level}
     for h in results:
         # parsimony: a set within the level whose proper subset is within it too adds nothing
@@ -1859,6 +1887,8 @@ def isolation_detail(config: DarrFekfConfig, state: DarrFekfState) -> dict[str, 
     if fit_s < iso.min_fit_s or not consistent:
         detail["explanation"] = "pending" if fit_s < iso.min_fit_s else "none_consistent"
     else:
+        # a sensor fault in every consistent set: the sensor fault is established, and
+        # estimates computed through that sensor would absorb its error (withheld)
         with_sensor = [any(m.startswith("sensor:") for m in h["set"]) for h in consistent]
         detail["explanation"] = (
             "sensor" if all(with_sensor) else "parameter" if not any(with_sensor) else "ambiguous"
@@ -2020,7 +2050,11 @@ def _status(
     if state.fault_active:
         reasons = [_fault_reason(config, state.coherence_vector, state.sensor_flags)]
         iso = detail["isolation"]
-        if iso is not None and iso["explanation"] in ("sensor", "parameter", "ambiguous"):
+        if iso is not None and iso["explanation"] in (
+            "sensor",
+            "parameter",
+            "ambiguous",
+        ):
             best = iso["hypotheses"][0]["set"] if iso["hypotheses"] else None
             text = f"isolation: {iso['explanation']}"
             if best:

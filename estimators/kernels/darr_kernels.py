@@ -72,7 +72,8 @@ CFG_REF_THR = 24  # 7 reference thresholds
 CFG_REF_RMS = CFG_REF_THR + 7  # 7 reference residual rms
 CFG_REF_NOISE = CFG_REF_RMS + 7  # 9 reference noise variances (NaN: none)
 CFG_NOISE_PERSIST = CFG_REF_NOISE + 9  # samples the running noise stays over the level: noisy
-CFG_LEN = CFG_NOISE_PERSIST + 1
+CFG_FIT_LAMBDA = CFG_NOISE_PERSIST + 1  # forgetting factor of the isolation fit per fit sample
+CFG_LEN = CFG_FIT_LAMBDA + 1
 
 N_STAGES = MAX_ORDER + 2  # box stages: the smoother is a B-spline of degree N_STAGES - 1
 
@@ -161,7 +162,7 @@ ST_RES_VAR = ST_CAL_N + N_RES  # 7 calibrated mean squares of the residuals (NaN
 ST_LEN_V1 = ST_RES_VAR + N_RES  # end of the version-1 layout; version 2 appends:
 ST_CAL_STATE = ST_LEN_V1  # CAL_* below
 ST_CAL_FLAGS = ST_CAL_STATE + 1  # bit mask of CALF_* reasons
-ST_FIT_N = ST_CAL_FLAGS + 1  # samples in the isolation fit of the active fault
+ST_FIT_N = ST_CAL_FLAGS + 1  # effective samples in the isolation fit (with forgetting)
 ST_SENS_MASK = ST_FIT_N + 1  # latched sensor flags as a bit mask (SENSOR_BITS)
 ST_SENS_N = ST_SENS_MASK + 1  # samples the sensor noise check has seen since calibration
 ST_EXP_SD = ST_SENS_N + 1  # 7 residual sd expected from the channels' noise (the model)
@@ -1263,6 +1264,13 @@ def darr_batch(
                     if not (sd > 0.0):
                         sd = math.sqrt(st[ST_RES_VAR + ri])
                     fit_w[ri] = 1.0 / (sd * sd) if sd > 0.0 else 0.0
+                # exponential forgetting: the fit follows a fault whose course changes (a ramp
+                # that stops) with constant and ramp columns over about the last window
+                fit_lambda = cfg[CFG_FIT_LAMBDA]
+                if fit_lambda < 1.0:
+                    for a in range(FIT_DIM):
+                        for b in range(a, FIT_DIM):
+                            gram[a, b] *= fit_lambda
                 for ri in range(N_RES):
                     w_l = fit_w[ri]
                     for a in range(FIT_DIM):
@@ -1272,7 +1280,7 @@ def darr_batch(
                         pa *= w_l
                         for b in range(a, FIT_DIM):
                             gram[a, b] += pa * phi[b, ri]
-                st[ST_FIT_N] += 1.0
+                st[ST_FIT_N] = st[ST_FIT_N] * fit_lambda + 1.0
         # --- estimators of the implicated subsystems, at the smoothed signals' time (lag)
         for c in range(N_CHAN):
             smooth[c] = sig[c, 0] if ready else np.nan
