@@ -178,8 +178,9 @@ def detection_lines(first) -> list[str]:
         )
         + ".",
         f"Final coherence vector {final.get('coherence_vector')}, "
-        f"{len(final.get('candidates', []))} candidate sets of up to "
-        f"{config.max_candidate_size} parameters; the true set {{A_h, B_h}} is "
+        f"{len(final.get('candidates', []))} candidate sets (exact matches of up to "
+        f"{config.max_candidate_size} members, parameters and sensor bias or drift, at most "
+        f"{config.max_candidates} listed); the true set {{A_h, B_h}} is "
         f"{'among them' if in_cands else 'NOT among them'}.",
     ]
     return lines
