@@ -200,6 +200,7 @@ FIT_BIAS = FIT_PRAMP + N_PARAMS_MODEL
 FIT_RAMP = FIT_BIAS + N_CHAN
 FIT_R = FIT_RAMP + N_CHAN
 FIT_DIM = FIT_R + 1
+FIT_FORGET_EVERY = 16  # fit samples between applications of the forgetting factor
 
 # calibration segment statistics (rows of cal_seg[ri, k])
 SEG_SUM2 = 0
@@ -1019,6 +1020,7 @@ def darr_batch(
     vec = np.zeros((WV_ROWS, WV_LEN))
     mats = np.zeros((3, MAX_DIM, MAX_DIM))
     phi = np.zeros((FIT_DIM, N_RES))
+    nz = np.zeros(FIT_DIM, dtype=np.int64)
     fit_w = np.empty(N_RES)
     n_seg = int(cfg[CFG_N_SEG])
     sens_lambda = cfg[CFG_SENSOR_LAMBDA]
@@ -1265,22 +1267,32 @@ def darr_batch(
                         sd = math.sqrt(st[ST_RES_VAR + ri])
                     fit_w[ri] = 1.0 / (sd * sd) if sd > 0.0 else 0.0
                 # exponential forgetting: the fit follows a fault whose course changes (a ramp
-                # that stops) with constant and ramp columns over about the last window
+                # that stops) with constant and ramp columns over about the last window;
+                # applied every FIT_FORGET_EVERY fit samples (lambda^FIT_FORGET_EVERY) to save
+                # the full pass over the matrix
+                fit_count = int(st[ST_N_SEEN]) // fit_dec
                 fit_lambda = cfg[CFG_FIT_LAMBDA]
-                if fit_lambda < 1.0:
+                if fit_lambda < 1.0 and fit_count % FIT_FORGET_EVERY == 0:
+                    chunk = fit_lambda**FIT_FORGET_EVERY
                     for a in range(FIT_DIM):
                         for b in range(a, FIT_DIM):
-                            gram[a, b] *= fit_lambda
+                            gram[a, b] *= chunk
+                    st[ST_FIT_N] *= chunk
+                # only the nonzero entries of each residual's row of phi (about a third)
                 for ri in range(N_RES):
                     w_l = fit_w[ri]
+                    n_nz = 0
                     for a in range(FIT_DIM):
-                        pa = phi[a, ri]
-                        if pa == 0.0:
-                            continue
-                        pa *= w_l
-                        for b in range(a, FIT_DIM):
+                        if phi[a, ri] != 0.0:
+                            nz[n_nz] = a
+                            n_nz += 1
+                    for i_a in range(n_nz):
+                        a = nz[i_a]
+                        pa = phi[a, ri] * w_l
+                        for i_b in range(i_a, n_nz):
+                            b = nz[i_b]
                             gram[a, b] += pa * phi[b, ri]
-                st[ST_FIT_N] = st[ST_FIT_N] * fit_lambda + 1.0
+                st[ST_FIT_N] += 1.0
         # --- estimators of the implicated subsystems, at the smoothed signals' time (lag)
         for c in range(N_CHAN):
             smooth[c] = sig[c, 0] if ready else np.nan
