@@ -38,14 +38,16 @@ import json
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Literal, NamedTuple
+from typing import Annotated, Any, Literal, NamedTuple
 
 import numpy as np
+from pydantic import Field, ValidationError, ValidationInfo, field_validator, model_validator
 
 from estimators.base import (
     Batch,
     ConfigError,
     Diagnosis,
+    EstimatorConfigModel,
     EstimatorError,
     EstimatorEvent,
     FloatArray,
@@ -54,17 +56,14 @@ from estimators.base import (
     StateVersionError,
     StatusReport,
     StepOutputs,
+    config_error,
 )
 from estimators.checks import channel_block
-from estimators.checks import finite as _finite
 from estimators.checks import finite_or_none as _finite_or_none
-from estimators.checks import is_number as _is_number
-from estimators.checks import non_negative as _non_negative
-from estimators.checks import positive as _positive
 from estimators.kernels import darr_kernels as kern
 
 NAME = "darr_fekf"
-STATE_VERSION = 1
+STATE_VERSION = 2
 
 # ----------------------------------------------------------------------------- the model
 CHANNELS: tuple[str, ...] = ("w", "f_c", "v", "f_e", "f_h", "v_p", "p_l", "x_v", "u_a")
@@ -215,39 +214,84 @@ def signature_matrix() -> dict[str, tuple[int, ...]]:
 
 SIGNATURES: dict[str, tuple[int, ...]] = signature_matrix()
 
+SENSOR_FAULT_KINDS: tuple[str, ...] = ("bias", "drift", "stuck", "noise")
+SIGNAL_CHECKED_KINDS: tuple[str, ...] = ("stuck", "noise")  # seen in the sensor's own signal
+
+
+def sensor_fault_name(channel: str, kind: str) -> str:
+    """Name of a sensor fault in candidate sets, e.g. ``"sensor:p_l:bias"``."""
+    return f"sensor:{channel}:{kind}"
+
+
+def sensor_signature_matrix() -> dict[str, tuple[int, ...]]:
+    """Fault signature columns of the sensor faults, derived from the term tables.
+
+    A sensor enters a relation through the terms that read its channel, each with a
+    derivative order. A constant bias passes only the order-0 terms (derivatives remove it); a
+    drift (a ramp) the order-0 and order-1 terms; a stuck sensor or increased noise every term.
+    So the F_H bias enters r6 only, although F_H is read by r4, r5 and r6.
+    """
+    rows: dict[str, tuple[int, ...]] = {}
+    max_order = {"bias": 0, "drift": 1, "stuck": MAX_ORDER, "noise": MAX_ORDER}
+    for channel in CHANNELS:
+        for kind in SENSOR_FAULT_KINDS:
+            rows[sensor_fault_name(channel, kind)] = tuple(
+                int(
+                    any(
+                        t.channel == channel and t.order <= max_order[kind] for t in DARR_TERMS[res]
+                    )
+                )
+                for res in RESIDUALS
+            )
+    return rows
+
+
+SENSOR_SIGNATURES: dict[str, tuple[int, ...]] = sensor_signature_matrix()
+ALL_SIGNATURES: dict[str, tuple[int, ...]] = {**SIGNATURES, **SENSOR_SIGNATURES}
+
 
 def candidate_sets(
     coherence: Sequence[int],
     set_gains: Sequence[str] = (),
     max_size: int = 3,
     max_count: int | None = None,
+    sensor_faults: Sequence[str] = (),
 ) -> list[list[str]]:
-    """Parameter sets whose signatures together give exactly the coherence vector.
+    """Fault sets whose signatures together give exactly the coherence vector.
 
     A set qualifies when the union (logical OR) of its members' signature rows equals
-    ``coherence``; members are detectable parameters not in ``set_gains`` whose signature is
-    within the coherence vector. Sets are ordered by size, then by name; single and multiple
-    faults up to ``max_size`` members, at most ``max_count`` sets (None: all).
+    ``coherence``; members are detectable parameters not in ``set_gains`` and the sensor
+    faults ``sensor_faults`` (names from :func:`sensor_fault_name`) whose signature is within
+    the coherence vector. Sets are ordered by size, then by name; single and multiple faults
+    up to ``max_size`` members, at most ``max_count`` sets (None: all).
     """
     target = tuple(int(bool(c)) for c in coherence)
-    found = _candidate_sets(target, tuple(sorted(set_gains)), max_size, max_count)
+    found = _candidate_sets(
+        target, tuple(sorted(set_gains)), max_size, max_count, tuple(sorted(sensor_faults))
+    )
     return [list(s) for s in found]
 
 
 @functools.lru_cache(maxsize=256)
 def _candidate_sets(
-    target: tuple[int, ...], set_gains: tuple[str, ...], max_size: int, max_count: int | None
+    target: tuple[int, ...],
+    set_gains: tuple[str, ...],
+    max_size: int,
+    max_count: int | None,
+    sensor_faults: tuple[str, ...] = (),
 ) -> tuple[tuple[str, ...], ...]:
     if not any(target):
         return ()
+    members = [p for p in PARAMETER_NAMES if p not in set_gains] + list(sensor_faults)
     eligible = sorted(
         name
-        for name in PARAMETER_NAMES
-        if name not in set_gains
-        and any(SIGNATURES[name])
-        and all(s <= c for s, c in zip(SIGNATURES[name], target, strict=True))
+        for name in members
+        if any(ALL_SIGNATURES[name])
+        and all(s <= c for s, c in zip(ALL_SIGNATURES[name], target, strict=True))
     )
-    masks = {name: sum(1 << i for i, s in enumerate(SIGNATURES[name]) if s) for name in eligible}
+    masks = {
+        name: sum(1 << i for i, s in enumerate(ALL_SIGNATURES[name]) if s) for name in eligible
+    }
     goal = sum(1 << i for i, c in enumerate(target) if c)
     found: list[tuple[str, ...]] = []
     for size in range(1, max_size + 1):
@@ -262,74 +306,477 @@ def _candidate_sets(
     return tuple(found)
 
 
+DEFAULT_Q_PARAMETER = 1.0e-4
+DEFAULT_P0_PARAMETER = 1.0e-2
+DEFAULT_SUBSYSTEMS: dict[str, dict[str, Any]] = {
+    "s6": {"state": "v_p", "parameters": ["a_h", "m_h", "b_h"]},
+    "s7": {"state": "p_l", "parameters": ["a_h", "r_il", "c_hj"]},
+}
+
+
 # ----------------------------------------------------------------------------- configuration
-@dataclass(frozen=True)
-class ThresholdConfig:
-    """Residual thresholds.
-
-    Attributes:
-        rule: ``"fixed"`` (``values``), or calibrated on the first ``window_s`` seconds of
-            stream time, assumed fault-free: ``"max"`` (largest |r|, the seed's rule),
-            ``"max_margin"`` (``margin`` times the largest |r|) or ``"quantile"`` (``margin``
-            times the ``q`` quantile of |r|).
-        window_s: calibration window (s of stream time); it also calibrates the channels'
-            noise when a filter needs it.
-        margin: factor applied to the calibrated statistic (rules max_margin and quantile).
-        q: quantile level (rule quantile).
-        values: the seven thresholds (rule fixed), in the residuals' units.
-    """
-
-    rule: Literal["fixed", "max", "max_margin", "quantile"] = "max_margin"
-    window_s: float = 3.0
-    margin: float = 2.0
-    q: float = 0.999
-    values: tuple[float, ...] | None = None
+_Finite = Annotated[float, Field(allow_inf_nan=False)]
+_Positive = Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
+_NonNegative = Annotated[float, Field(ge=0.0, allow_inf_nan=False)]
+_Ratio = Annotated[float, Field(gt=1.0, allow_inf_nan=False)]
+ResidualName = Literal["r1", "r2", "r3", "r4", "r5", "r6", "r7"]
+ChannelName = Literal["w", "f_c", "v", "f_e", "f_h", "v_p", "p_l", "x_v", "u_a"]
+ParameterName = Literal[
+    "k_q", "k_c", "c_hj", "r_il", "a_h", "b_h", "m_h", "k_2", "m_r", "b_d", "f_m",
+    "f_r", "r_w", "k_m", "j_m", "s_e", "lead", "k_s", "k_1", "m_screw", "l_w", "k_d",
+]  # fmt: skip
 
 
-@dataclass(frozen=True)
-class FuzzyConfig:
-    """Settings of the fuzzy adaptive factor (seed eqs. 38-44).
+class ResidualValues(EstimatorConfigModel):
+    """One positive number per residual, in the residual's unit (``RESIDUAL_UNITS``)."""
 
-    Attributes:
-        c: robust constant of eq. 41 (seed: 1.0 to 1.5).
-        window_s: time constant of the innovation variance estimate (eq. 38).
-        input_levels: levels of the input sets ZO, PS, PB on the ratio of the predicted-state
-            to the observation variance factor.
-        output_levels: alpha of the output sets ZO, PS, PB (seed: 0, 0.5, 1).
-        alpha_min: floor of alpha (alpha is the prior's weight over ``window_s``; 0 would
-            discard the prior at once).
-    """
+    r1: _Positive = Field(description="r1, V N m / A")
+    r2: _Positive = Field(description="r2, m/s")
+    r3: _Positive = Field(description="r3, N")
+    r4: _Positive = Field(description="r4, N/s")
+    r5: _Positive = Field(description="r5, N/s")
+    r6: _Positive = Field(description="r6, N")
+    r7: _Positive = Field(description="r7, m^3/s")
 
-    c: float = 1.5
-    window_s: float = 0.05
-    input_levels: tuple[float, float, float] = (1.0, 2.0, 3.0)
-    output_levels: tuple[float, float, float] = (0.0, 0.5, 1.0)
-    alpha_min: float = 0.05
+    def as_tuple(self) -> tuple[float, ...]:
+        """The seven values in residual order."""
+        return (self.r1, self.r2, self.r3, self.r4, self.r5, self.r6, self.r7)
+
+
+class ChannelValues(EstimatorConfigModel):
+    """An optional non-negative number per model channel, in the channel's unit."""
+
+    w: _NonNegative | None = Field(None, description="rad/s")
+    f_c: _NonNegative | None = Field(None, description="N")
+    v: _NonNegative | None = Field(None, description="m/s")
+    f_e: _NonNegative | None = Field(None, description="N")
+    f_h: _NonNegative | None = Field(None, description="N")
+    v_p: _NonNegative | None = Field(None, description="m/s")
+    p_l: _NonNegative | None = Field(None, description="Pa")
+    x_v: _NonNegative | None = Field(None, description="m")
+    u_a: _NonNegative | None = Field(None, description="V")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _auto_is_none(cls, data: Any) -> Any:
+        """``"auto"`` (calibrated) is the same as leaving the channel out."""
+        if isinstance(data, Mapping):
+            return {k: (None if v == "auto" else v) for k, v in data.items()}
+        return data
+
+    def as_dict(self) -> dict[str, float]:
+        """The channels given, by name."""
+        return {c: float(v) for c in CHANNELS if (v := getattr(self, c)) is not None}
+
+
+class ReferenceModel(EstimatorConfigModel):
+    """A fault-free reference run's levels (copy them from that run's diagnosis,
+    ``detail["calibration"]["reference"]``)."""
+
+    thresholds: ResidualValues = Field(
+        description="thresholds used when this stream's calibration is refused"
+    )
+    residual_rms: ResidualValues = Field(
+        description="robust rms of each residual on the reference run; the calibration window "
+        "is compared with it instead of the model's expected level"
+    )
+    noise_std: ChannelValues = Field(
+        default_factory=lambda: ChannelValues.model_validate({}),
+        description="measurement noise sd by channel on the reference run; a calibration window "
+        "noisier than noise_ratio times its variance is refused",
+    )
+
+
+class ThresholdsModel(EstimatorConfigModel):
+    """Residual thresholds and the checks of the calibration window."""
+
+    rule: Literal["fixed", "max", "max_margin", "quantile"] = Field(
+        "max_margin",
+        description="fixed (values), or calibrated on the first window_s of stream time: max "
+        "(largest |r|, the seed's rule), max_margin (margin x largest |r|), quantile (margin x "
+        "the q quantile of |r|); calibrated statistics exclude outlying segments",
+    )
+    window_s: _NonNegative = Field(3.0, description="calibration window, s of stream time")
+    margin: _Positive = Field(2.0, description="factor on the calibrated statistic")
+    q: float = Field(0.999, gt=0.0, lt=1.0, description="quantile level (rule quantile)")
+    values: tuple[_Positive, ...] | None = Field(
+        None, description="seven thresholds r1..r7 (rule fixed), list or object by residual"
+    )
+    segments: int = Field(
+        6, ge=2, le=kern.MAX_SEGMENTS, strict=True, description="segments of the calibration window"
+    )
+    segment_outlier_ratio: _Ratio = Field(
+        2.0,
+        description="a segment whose residual rms exceeds this times the median segment rms is "
+        "excluded from the threshold statistic (calibration suspicious)",
+    )
+    segment_peak_ratio: _Ratio = Field(
+        7.0,
+        description="a segment whose largest |r| exceeds this times the median segment rms is "
+        "excluded (calibration suspicious)",
+    )
+    suspicious_ratio: _Ratio = Field(
+        1.5,
+        description="median segment rms over the expected (or reference) rms above which the "
+        "calibration is suspicious",
+    )
+    refuse_ratio: _Ratio = Field(
+        3.0,
+        description="median segment rms over the expected (or reference) rms above which the "
+        "calibration is refused",
+    )
+    fallback_sigmas: _Positive = Field(
+        7.0,
+        description="thresholds after a refused calibration without reference: this times the "
+        "residual sd expected from the channels' noise",
+    )
+    reference: ReferenceModel | None = Field(
+        None, description="levels of a fault-free reference run (see docs, section 4)"
+    )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _rule_from_values(cls, data: Any) -> Any:
+        if isinstance(data, Mapping) and "values" in data and "rule" not in data:
+            return {**data, "rule": "fixed"}
+        return data
+
+    @field_validator("values", mode="before")
+    @classmethod
+    def _values_by_name(cls, value: Any) -> Any:
+        if isinstance(value, Mapping):
+            if set(value) != set(RESIDUALS):
+                raise ValueError("give all seven thresholds r1..r7")
+            return [value[r] for r in RESIDUALS]
+        return value
+
+    @field_validator("values")
+    @classmethod
+    def _seven(cls, value: tuple[float, ...] | None) -> tuple[float, ...] | None:
+        if value is not None and len(value) != len(RESIDUALS):
+            raise ValueError("expected seven numbers (r1..r7)")
+        return value
+
+    @model_validator(mode="after")
+    def _consistent(self) -> ThresholdsModel:
+        if self.rule == "fixed" and self.values is None:
+            raise ValueError("values: rule fixed needs the seven values")
+        if self.rule != "fixed" and self.values is not None:
+            raise ValueError("values: only with rule fixed")
+        if self.refuse_ratio < self.suspicious_ratio:
+            raise ValueError("refuse_ratio: must be >= suspicious_ratio")
+        return self
+
+
+class FuzzyModel(EstimatorConfigModel):
+    """Settings of the fuzzy adaptive factor (seed eqs. 38-44)."""
+
+    c: _Positive = Field(1.5, description="robust constant of eq. 41 (seed: 1.0 to 1.5)")
+    window_s: _Positive = Field(
+        0.05, description="time constant of the innovation variance estimate (eq. 38), s"
+    )
+    input_levels: tuple[_Finite, _Finite, _Finite] = Field(
+        (1.0, 2.0, 3.0),
+        description="levels of the input sets ZO, PS, PB on the variance-factor ratio",
+    )
+    output_levels: tuple[_Finite, _Finite, _Finite] = Field(
+        (0.0, 0.5, 1.0), description="alpha of the output sets ZO, PS, PB, each in [0, 1]"
+    )
+    alpha_min: float = Field(0.05, gt=0.0, le=1.0, description="floor of alpha")
+
+    @field_validator("input_levels")
+    @classmethod
+    def _increasing(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
+        if not v[0] < v[1] < v[2]:
+            raise ValueError("levels must be strictly increasing")
+        return v
+
+    @field_validator("output_levels")
+    @classmethod
+    def _unit(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
+        if not all(0.0 <= x <= 1.0 for x in v):
+            raise ValueError("alpha levels must lie in [0, 1]")
+        return v
+
+
+class SubsystemModel(EstimatorConfigModel):
+    """A subsystem estimator on the subsystem's DARR (section 6 of the method notes)."""
+
+    state: ChannelName | None = Field(
+        None, description="state channel of the state form (default: the subsystem's sensor)"
+    )
+    parameters: tuple[ParameterName, ...] = Field(
+        min_length=1, max_length=kern.MAX_PARAMS, description="parameters of the relation"
+    )
+    estimator: Literal["ekf", "fekf"] = Field("fekf", description="EKF or fuzzy adaptive EKF")
+    measurement: Literal["relation", "state"] = Field(
+        "relation",
+        description="relation: the relation is a pseudo-measurement of zero; state: the seed's "
+        "form (first-order relations only: s2, s3, s6, s7)",
+    )
+    r: _Positive | Literal["auto"] = Field(
+        "auto", description="measurement variance (channel or relation unit squared) or auto"
+    )
+    q_state: _Positive | Literal["auto"] = Field(
+        "auto", description="state process noise variance per sample (state form) or auto"
+    )
+    p0_state: _Positive | Literal["auto"] = Field(
+        "auto", description="initial state variance (state form) or auto (= r)"
+    )
+    q_parameters: _Positive | dict[str, _Positive] = Field(
+        DEFAULT_Q_PARAMETER,
+        description="relative random-walk variance rate, 1/s (number, or object by parameter)",
+    )
+    p0_parameters: _Positive | dict[str, _Positive] = Field(
+        DEFAULT_P0_PARAMETER,
+        description="initial relative variance (number, or object by parameter)",
+    )
+    fuzzy: FuzzyModel = Field(
+        default_factory=lambda: FuzzyModel.model_validate({}), description="FEKF settings"
+    )
+    bounds: tuple[_Positive, _Positive] = Field(
+        (1.0e-3, 1.0e3), description="parameter limits relative to nominal, low < 1 < high"
+    )
+
+    @field_validator("bounds")
+    @classmethod
+    def _around_one(cls, v: tuple[float, float]) -> tuple[float, float]:
+        if not v[0] < 1.0 < v[1]:
+            raise ValueError("expected low < 1 < high (relative to nominal)")
+        return v
+
+    @model_validator(mode="after")
+    def _own_parameters(self) -> SubsystemModel:
+        if len(set(self.parameters)) != len(self.parameters):
+            raise ValueError("parameters: a parameter is listed twice")
+        for name in ("q_parameters", "p0_parameters"):
+            value = getattr(self, name)
+            if isinstance(value, dict):
+                for p in value:
+                    if p not in self.parameters:
+                        raise ValueError(f"{name}.{p}: not an estimated parameter")
+        return self
+
+    def per_parameter(self, name: str, default: float) -> tuple[float, ...]:
+        """``q_parameters`` or ``p0_parameters`` as one number per estimated parameter."""
+        value = getattr(self, name)
+        if isinstance(value, dict):
+            return tuple(float(value.get(p, default)) for p in self.parameters)
+        return tuple(float(value) for _ in self.parameters)
+
+
+def _check_subsystem(key: str, sub: SubsystemModel | None) -> SubsystemModel | None:
+    """Parameters in the subsystem's relation; the state form only on first-order relations."""
+    if sub is None:
+        return None
+    res = "r" + key[1:]
+    in_relation = sorted({p for t in DARR_TERMS[res] for p, _ in t.powers})
+    for p in sub.parameters:
+        if p not in in_relation:
+            raise ValueError(f"parameters: {p!r} is not in {res} (it has {', '.join(in_relation)})")
+    state = sub.state or SUBSYSTEM_SENSOR[key]
+    if sub.measurement == "state":
+        terms = DARR_TERMS[res]
+        if not any(t.channel == state and t.order == 1 for t in terms):
+            raise ValueError(f"state: {state!r} has no first derivative in {res}")
+        for term in terms:
+            if term.channel == state and term.order > 1:
+                raise ValueError(
+                    f"state: {res} holds a derivative of order {term.order} of {state!r}; "
+                    "only first-order relations can be integrated"
+                )
+            if term.channel not in (None, state) and term.order > 0:
+                raise ValueError(
+                    f"state: {res} holds a derivative of {term.channel!r}; only the state may "
+                    "be derived"
+                )
+    return sub.model_copy(update={"state": state})
+
+
+class SubsystemsModel(EstimatorConfigModel):
+    """Subsystem estimators by subsystem (``s1``..``s7``); default s6 and s7."""
+
+    s1: SubsystemModel | None = Field(None, description="motor circuit (r1)")
+    s2: SubsystemModel | None = Field(None, description="screw stiffness (r2)")
+    s3: SubsystemModel | None = Field(None, description="screw mass (r3)")
+    s4: SubsystemModel | None = Field(None, description="surface via the EMA (r4)")
+    s5: SubsystemModel | None = Field(None, description="surface via the SHA (r5)")
+    s6: SubsystemModel | None = Field(None, description="piston (r6)")
+    s7: SubsystemModel | None = Field(None, description="cylinder (r7)")
+
+    @field_validator("s1", "s2", "s3", "s4", "s5", "s6", "s7")
+    @classmethod
+    def _relation(cls, v: SubsystemModel | None, info: ValidationInfo) -> SubsystemModel | None:
+        return _check_subsystem(str(info.field_name), v)
+
+    def items(self) -> list[tuple[str, SubsystemModel]]:
+        """Configured subsystems in order."""
+        return [(k, v) for k in SUBSYSTEM_SENSOR if (v := getattr(self, k)) is not None]
+
+
+class ChannelsModel(EstimatorConfigModel):
+    """Stream channel name of each model channel (default: the same name)."""
+
+    w: str = Field("w", min_length=1, description="motor speed, rad/s")
+    f_c: str = Field("f_c", min_length=1, description="screw force, N")
+    v: str = Field("v", min_length=1, description="screw velocity, m/s")
+    f_e: str = Field("f_e", min_length=1, description="EMA output force, N")
+    f_h: str = Field("f_h", min_length=1, description="SHA output force, N")
+    v_p: str = Field("v_p", min_length=1, description="piston velocity, m/s")
+    p_l: str = Field("p_l", min_length=1, description="load pressure, Pa")
+    x_v: str = Field("x_v", min_length=1, description="valve spool position, m")
+    u_a: str = Field("u_a", min_length=1, description="motor voltage, V")
+
+    @model_validator(mode="after")
+    def _distinct(self) -> ChannelsModel:
+        if len({getattr(self, c) for c in CHANNELS}) != len(CHANNELS):
+            raise ValueError("two model channels map to the same stream channel")
+        return self
+
+
+class ParametersModel(EstimatorConfigModel):
+    """Nominal model parameters, SI units (seed Table 3)."""
+
+    k_q: _Finite = Field(NOMINAL["k_q"], description="valve flow gain K_q, m^2/s")
+    k_c: _Finite = Field(NOMINAL["k_c"], description="flow-pressure coefficient, m^3/(s Pa)")
+    c_hj: _Positive = Field(NOMINAL["c_hj"], description="hydraulic capacitance, m^3/Pa")
+    r_il: _Positive = Field(NOMINAL["r_il"], description="leakage resistance, Pa s/m^3")
+    a_h: _Finite = Field(NOMINAL["a_h"], description="piston area, m^2")
+    b_h: _Finite = Field(NOMINAL["b_h"], description="piston damping, N s/m")
+    m_h: _Positive = Field(NOMINAL["m_h"], description="piston mass, kg")
+    k_2: _Positive = Field(NOMINAL["k_2"], description="piston rod stiffness, N/m")
+    m_r: _Positive = Field(NOMINAL["m_r"], description="surface mass, kg")
+    b_d: _Finite = Field(NOMINAL["b_d"], description="surface damping, N s/m")
+    f_m: _Finite = Field(NOMINAL["f_m"], description="motor bearing friction, N m s/rad")
+    f_r: _Finite = Field(NOMINAL["f_r"], description="screw viscous friction, N s/m")
+    r_w: _Finite = Field(NOMINAL["r_w"], description="motor resistance, ohm")
+    k_m: _Finite = Field(NOMINAL["k_m"], description="motor torque constant, N m/A")
+    j_m: _Positive = Field(NOMINAL["j_m"], description="motor inertia, kg m^2")
+    s_e: _Finite = Field(NOMINAL["s_e"], description="motor starting friction, N m")
+    lead: _Finite = Field(NOMINAL["lead"], description="screw lead, m")
+    k_s: _Positive = Field(NOMINAL["k_s"], description="screw stiffness, N/m")
+    k_1: _Positive = Field(NOMINAL["k_1"], description="screw attachment stiffness, N/m")
+    m_screw: _Positive = Field(NOMINAL["m_screw"], description="screw mass, kg")
+    l_w: _Positive = Field(NOMINAL["l_w"], description="motor inductance, H")
+    k_d: _Finite = Field(NOMINAL["k_d"], description="surface load stiffness, N/m")
+
+
+class SensorChecksModel(EstimatorConfigModel):
+    """Checks of each sensor's own signal (stuck, increased noise), section 5 of the notes."""
+
+    enabled: bool = Field(True, description="run the stuck and noise checks")
+    stuck_s: _Positive = Field(
+        0.1, description="a sensor whose raw value does not change for this long is stuck, s"
+    )
+    noise_window_s: _Positive = Field(
+        0.2, description="time constant of the running noise variance, s"
+    )
+    noise_persist_s: _Positive = Field(
+        0.3,
+        description="time the running noise variance must stay over the level before a sensor "
+        "is flagged noisy, s (a plant transient raises it for a while)",
+    )
+    noise_ratio: _Ratio = Field(
+        3.0,
+        description="running over calibrated noise variance above which a sensor is noisy "
+        "(also: calibration noise over reference noise above which calibration is refused)",
+    )
+
+
+class IsolationModel(EstimatorConfigModel):
+    """The fit that tells sensor from parameter faults among the candidate sets."""
+
+    @model_validator(mode="after")
+    def _window(self) -> IsolationModel:
+        if self.min_fit_s >= self.window_s:
+            raise ValueError("min_fit_s: must be shorter than window_s")
+        return self
+
+    fit_decimation: int = Field(
+        10, ge=1, le=10_000, strict=True, description="one fit sample in this many stream samples"
+    )
+    min_fit_s: _Positive = Field(
+        0.3, description="fault time before the fit decides between the candidate sets, s"
+    )
+    window_s: _Positive = Field(
+        2.0,
+        description="time constant of the fit's exponential forgetting, s: the fit describes "
+        "about the last window_s of the fault",
+    )
+    consistency_ratio: _Ratio = Field(
+        1.5,
+        description="a candidate set is consistent when its mean squared standardized "
+        "residual after the fit is within this factor of the best set's",
+    )
+    consistency_share: float = Field(
+        0.03,
+        ge=0.0,
+        lt=1.0,
+        description="... or within this share of the fault's mean squared residual (no-fault "
+        "fit minus best) above the best: a larger set must explain a noticeable part of the "
+        "fault, not only the model's small misfit of a large fault",
+    )
+    consistency_floor: _Positive = Field(
+        1.5,
+        description="... or below this mean squared standardized residual (1: noise only)",
+    )
+
+
+class DarrFekfConfigModel(EstimatorConfigModel):
+    """Configuration of the darr_fekf estimator (``docs/methods-darr-fekf.md``, section 9)."""
+
+    channels: ChannelsModel = Field(default_factory=lambda: ChannelsModel.model_validate({}))
+    sample_period_s: _Positive = Field(1.0e-4, description="nominal sample period, s")
+    parameters: ParametersModel = Field(default_factory=lambda: ParametersModel.model_validate({}))
+    differentiator_window_s: _Positive = Field(
+        0.05, description="smoother span, s (the residuals' lag is half of it)"
+    )
+    max_missing_fraction: float = Field(
+        0.1, ge=0.0, lt=1.0, description="most held (missing) samples in a window"
+    )
+    thresholds: ThresholdsModel = Field(default_factory=lambda: ThresholdsModel.model_validate({}))
+    min_duration_s: _NonNegative = Field(
+        0.002, description="time above threshold before a residual counts, s"
+    )
+    clear_after_s: _Positive = Field(1.0, description="time all below before a clearance, s")
+    set_gains: tuple[ParameterName, ...] = Field(
+        ("k_q", "k_c"), description="parameters known to be right (not in candidate sets)"
+    )
+    noise_std: ChannelValues = Field(
+        default_factory=lambda: ChannelValues.model_validate({}),
+        description="known noise sd by channel (else calibrated)",
+    )
+    max_candidate_size: int = Field(3, ge=1, le=6, strict=True, description="largest set")
+    max_candidates: int = Field(100, ge=1, le=10_000, strict=True, description="most sets")
+    subsystems: SubsystemsModel = Field(
+        default_factory=lambda: SubsystemsModel.model_validate(DEFAULT_SUBSYSTEMS)
+    )
+    health_window_samples: int = Field(
+        10_000, ge=1, le=100_000_000, strict=True, description="health window, samples"
+    )
+    sensors: SensorChecksModel = Field(default_factory=lambda: SensorChecksModel.model_validate({}))
+    isolation: IsolationModel = Field(default_factory=lambda: IsolationModel.model_validate({}))
+
+    @model_validator(mode="after")
+    def _calibration_window(self) -> DarrFekfConfigModel:
+        needs_noise = any(
+            s.r == "auto" or (s.measurement == "state" and s.q_state == "auto")
+            for _, s in self.subsystems.items()
+        )
+        if self.thresholds.window_s <= 0.0 and (self.thresholds.rule != "fixed" or needs_noise):
+            raise ValueError(
+                'thresholds.window_s: a calibration window is needed (calibrated thresholds or "auto" noise)'
+            )
+        return self
+
+
+CONFIG_MODEL = DarrFekfConfigModel
 
 
 @dataclass(frozen=True)
 class SubsystemConfig:
-    """A subsystem estimator on the subsystem's DARR.
-
-    Attributes:
-        state: model channel measured by the subsystem's sensor, whose first derivative the
-            relation holds (e.g. ``"v_p"``); used by the ``"state"`` measurement.
-        parameters: parameters of the relation to estimate (the others stay nominal).
-        estimator: ``"ekf"`` or ``"fekf"``.
-        measurement: ``"relation"`` (the relation itself is a pseudo-measurement, zero when
-            the parameters are right; the filter state is the parameters) or ``"state"`` (the
-            seed's form: the state is [y, parameters], the model is integrated and the measured
-            state updates it).
-        r: measurement variance (state channel variance, or the relation's variance per
-            sample), or "auto" (calibrated on the fault-free window).
-        q_state: process noise variance of the state per sample, or "auto" (the inputs'
-            calibrated noise propagated through the model); state measurement only.
-        p0_state: initial variance of the state, or "auto" (= r); state measurement only.
-        q_parameters: relative variance rate of each parameter's random walk (1/s).
-        p0_parameters: initial relative variance of each parameter.
-        fuzzy: FEKF settings.
-        bounds: limits of each parameter relative to its nominal value.
-    """
+    """A subsystem estimator, as the kernel compiler reads it (built from
+    :class:`SubsystemModel`; field meanings there)."""
 
     state: str
     parameters: tuple[str, ...]
@@ -340,16 +787,8 @@ class SubsystemConfig:
     p0_state: float | Literal["auto"] = "auto"
     q_parameters: tuple[float, ...] = ()
     p0_parameters: tuple[float, ...] = ()
-    fuzzy: FuzzyConfig = field(default_factory=FuzzyConfig)
+    fuzzy: FuzzyModel = field(default_factory=lambda: FuzzyModel.model_validate({}))
     bounds: tuple[float, float] = (1.0e-3, 1.0e3)
-
-
-DEFAULT_Q_PARAMETER = 1.0e-4
-DEFAULT_P0_PARAMETER = 1.0e-2
-DEFAULT_SUBSYSTEMS: dict[str, dict[str, Any]] = {
-    "s6": {"state": "v_p", "parameters": ["a_h", "m_h", "b_h"]},
-    "s7": {"state": "p_l", "parameters": ["a_h", "r_il", "c_hj"]},
-}
 
 
 class _Compiled(NamedTuple):
@@ -370,6 +809,9 @@ class _Compiled(NamedTuple):
     sub_coef: FloatArray
     sub_exp: FloatArray
     sub_fuse: kern.IntArray
+    res_gain2: FloatArray
+    term_fit: FloatArray
+    sub_reads: FloatArray
     n_window: int
     box: int
     n_hist: int
@@ -379,41 +821,47 @@ class _Compiled(NamedTuple):
 
 @dataclass(frozen=True)
 class DarrFekfConfig:
-    """Validated configuration (build it with :func:`parse_config`).
+    """Validated configuration (build it with :func:`parse_config`); the public form is
+    :class:`DarrFekfConfigModel` (``model``), this is what the estimator reads.
 
     Attributes:
+        model: the validated public configuration.
         channels: model channel -> stream channel name.
         sample_period_s: nominal sample period of the stream (the differentiator assumes it).
         parameters: nominal model parameters (SI units).
         differentiator_window_s: length of the smoothing differentiator's window.
         max_missing_fraction: largest fraction of missing samples in a window for which a
             residual is still computed (missing samples hold the last valid value).
-        thresholds: residual thresholds.
+        thresholds: residual thresholds and calibration checks.
         min_duration_s: time a residual must stay above its threshold to count as exceeded.
         clear_after_s: time every residual must stay below its threshold to clear a fault.
         set_gains: parameters known to be right (excluded from candidate sets).
-        noise_std: known measurement noise standard deviation by model channel (the others
-            are calibrated when a filter needs them).
+        noise_std: known measurement noise standard deviation by model channel.
         max_candidate_size: largest candidate fault set.
         max_candidates: most candidate sets reported.
         subsystems: estimators by subsystem name (``"s1"``..``"s7"``).
         health_window_samples: length of a health window, stream samples.
+        sensors: sensor self-checks.
+        isolation: the sensor-or-parameter fit.
     """
 
-    channels: dict[str, str] = field(default_factory=lambda: {c: c for c in CHANNELS}, hash=False)
-    sample_period_s: float = 1.0e-4
-    parameters: dict[str, float] = field(default_factory=lambda: dict(NOMINAL), hash=False)
-    differentiator_window_s: float = 0.05
-    max_missing_fraction: float = 0.1
-    thresholds: ThresholdConfig = field(default_factory=ThresholdConfig)
-    min_duration_s: float = 0.002
-    clear_after_s: float = 1.0
-    set_gains: tuple[str, ...] = ("k_q", "k_c")
-    noise_std: dict[str, float] = field(default_factory=dict, hash=False)
-    max_candidate_size: int = 3
-    max_candidates: int = 100
-    subsystems: dict[str, SubsystemConfig] = field(default_factory=dict, hash=False)
-    health_window_samples: int = 10_000
+    model: DarrFekfConfigModel = field(compare=False, hash=False, repr=False)
+    channels: dict[str, str] = field(hash=False)
+    sample_period_s: float
+    parameters: dict[str, float] = field(hash=False)
+    differentiator_window_s: float
+    max_missing_fraction: float
+    thresholds: ThresholdsModel
+    min_duration_s: float
+    clear_after_s: float
+    set_gains: tuple[str, ...]
+    noise_std: dict[str, float] = field(hash=False)
+    max_candidate_size: int
+    max_candidates: int
+    subsystems: dict[str, SubsystemConfig] = field(hash=False)
+    health_window_samples: int
+    sensors: SensorChecksModel
+    isolation: IsolationModel
     compiled: _Compiled = field(init=False, repr=False, compare=False, hash=False)
 
     def __post_init__(self) -> None:
@@ -430,379 +878,62 @@ class DarrFekfConfig:
         return 0.5 * (self.n_window - 1) * self.sample_period_s
 
 
-# --------------------------------------------------------------------- parsing helpers
-
-
-
-
-
-
-
-
-def _auto_or_positive(name: str, value: Any) -> float | Literal["auto"]:
-    if value == "auto":
-        return "auto"
-    return _positive(name, value)
-
-
-def _object(name: str, value: Any, known: Sequence[str]) -> Mapping[str, Any]:
-    if not isinstance(value, Mapping):
-        raise ConfigError(f"{name}: expected an object, got {type(value).__name__}")
-    unknown = sorted(set(map(str, value)) - set(known))
-    if unknown:
-        prefix = f"{name}." if name else ""
-        raise ConfigError(f"{prefix}{unknown[0]}: unknown field (known: {', '.join(known)})")
-    return value
-
-
-def _levels(name: str, value: Any, *, increasing: bool) -> tuple[float, float, float]:
-    if not isinstance(value, Sequence) or isinstance(value, str) or len(value) != 3:
-        raise ConfigError(f"{name}: expected three numbers")
-    levels = tuple(_finite(f"{name}[{i}]", v) for i, v in enumerate(value))
-    if increasing and not levels[0] < levels[1] < levels[2]:
-        raise ConfigError(f"{name}: levels must be strictly increasing")
-    return levels  # type: ignore[return-value]
-
-
-def _per_parameter(
-    name: str, value: Any, parameters: tuple[str, ...], default: float
-) -> tuple[float, ...]:
-    """A number for all parameters, or an object by parameter name (missing: default)."""
-    if _is_number(value):
-        v = _positive(name, value)
-        return tuple(v for _ in parameters)
-    obj = _object(name, value, parameters)
-    return tuple(_positive(f"{name}.{p}", obj.get(p, default)) for p in parameters)
-
-
-_THRESHOLD_FIELDS = ("rule", "window_s", "margin", "q", "values")
-
-
-def _parse_thresholds(raw: Any) -> ThresholdConfig:
-    obj = _object("thresholds", raw, _THRESHOLD_FIELDS)
-    d = ThresholdConfig()
-    rule = obj.get("rule", "fixed" if "values" in obj else d.rule)
-    if rule not in ("fixed", "max", "max_margin", "quantile"):
-        raise ConfigError(
-            f"thresholds.rule: expected fixed, max, max_margin or quantile, got {rule!r}"
-        )
-    values: tuple[float, ...] | None = None
-    if rule == "fixed":
-        raw_values = obj.get("values")
-        if isinstance(raw_values, Mapping):
-            _object("thresholds.values", raw_values, RESIDUALS)
-            if set(raw_values) != set(RESIDUALS):
-                raise ConfigError("thresholds.values: give all seven thresholds r1..r7")
-            raw_values = [raw_values[r] for r in RESIDUALS]
-        if not isinstance(raw_values, Sequence) or len(raw_values) != len(RESIDUALS):
-            raise ConfigError("thresholds.values: expected seven numbers (r1..r7)")
-        values = tuple(_positive(f"thresholds.values[{i}]", v) for i, v in enumerate(raw_values))
-    elif "values" in obj:
-        raise ConfigError("thresholds.values: only with rule fixed")
-    q = _finite("thresholds.q", obj.get("q", d.q))
-    if not 0.0 < q < 1.0:
-        raise ConfigError(f"thresholds.q: expected a number in (0, 1), got {q!r}")
-    return ThresholdConfig(
-        rule=rule,
-        window_s=_non_negative("thresholds.window_s", obj.get("window_s", d.window_s)),
-        margin=_positive("thresholds.margin", obj.get("margin", d.margin)),
-        q=q,
-        values=values,
-    )
-
-
-_FUZZY_FIELDS = ("c", "window_s", "input_levels", "output_levels", "alpha_min")
-
-
-def _parse_fuzzy(name: str, raw: Any) -> FuzzyConfig:
-    obj = _object(name, raw, _FUZZY_FIELDS)
-    d = FuzzyConfig()
-    out = _levels(
-        f"{name}.output_levels", obj.get("output_levels", d.output_levels), increasing=False
-    )
-    if not all(0.0 <= v <= 1.0 for v in out):
-        raise ConfigError(f"{name}.output_levels: alpha levels must lie in [0, 1]")
-    return FuzzyConfig(
-        c=_positive(f"{name}.c", obj.get("c", d.c)),
-        window_s=_positive(f"{name}.window_s", obj.get("window_s", d.window_s)),
-        input_levels=_levels(
-            f"{name}.input_levels", obj.get("input_levels", d.input_levels), increasing=True
-        ),
-        output_levels=out,
-        alpha_min=_alpha_min(name, obj.get("alpha_min", d.alpha_min)),
-    )
-
-
-def _alpha_min(name: str, value: Any) -> float:
-    v = _finite(f"{name}.alpha_min", value)
-    if not 0.0 < v <= 1.0:
-        raise ConfigError(f"{name}.alpha_min: expected a number in (0, 1], got {value!r}")
-    return v
-
-
-_SUBSYSTEM_FIELDS = (
-    "state",
-    "parameters",
-    "estimator",
-    "measurement",
-    "r",
-    "q_state",
-    "p0_state",
-    "q_parameters",
-    "p0_parameters",
-    "fuzzy",
-    "bounds",
-)
-
-
-def _subsystem_structure(key: str, state: str) -> None:
-    """Raise ConfigError unless the relation of subsystem ``key`` is first order in ``state``
-    with every other signal underived (what the subsystem filter can integrate)."""
-    terms = DARR_TERMS["r" + key[1:]]
-    if not any(t.channel == state and t.order == 1 for t in terms):
-        raise ConfigError(
-            f"subsystems.{key}.state: {state!r} has no first derivative in r{key[1:]}"
-        )
-    for term in terms:
-        if term.channel == state and term.order > 1:
-            raise ConfigError(
-                f"subsystems.{key}.state: r{key[1:]} holds a derivative of order "
-                f"{term.order} of {state!r}; only first-order relations can be integrated"
-            )
-        if term.channel not in (None, state) and term.order > 0:
-            raise ConfigError(
-                f"subsystems.{key}.state: r{key[1:]} holds a derivative of {term.channel!r}; "
-                "only the state may be derived"
-            )
-
-
-def _parse_subsystem(key: str, raw: Any) -> SubsystemConfig:
-    name = f"subsystems.{key}"
-    if key not in SUBSYSTEM_SENSOR:
-        raise ConfigError(f"{name}: unknown subsystem (known: {', '.join(SUBSYSTEM_SENSOR)})")
-    obj = _object(name, raw, _SUBSYSTEM_FIELDS)
-    state = obj.get("state", SUBSYSTEM_SENSOR[key])
-    if state not in CHANNELS:
-        raise ConfigError(f"{name}.state: unknown channel {state!r}")
-    measurement = obj.get("measurement", "relation")
-    if measurement not in ("relation", "state"):
-        raise ConfigError(f"{name}.measurement: expected relation or state, got {measurement!r}")
-    if measurement == "state":
-        _subsystem_structure(key, state)
-    params = obj.get("parameters")
-    in_relation = sorted({p for t in DARR_TERMS["r" + key[1:]] for p, _ in t.powers})
-    if (
-        not isinstance(params, Sequence)
-        or isinstance(params, str)
-        or not params
-        or len(params) > kern.MAX_PARAMS
-    ):
-        raise ConfigError(f"{name}.parameters: expected 1 to {kern.MAX_PARAMS} parameter names")
-    for p in params:
-        if p not in in_relation:
-            raise ConfigError(
-                f"{name}.parameters: {p!r} is not in r{key[1:]} (it has {', '.join(in_relation)})"
-            )
-    if len(set(params)) != len(params):
-        raise ConfigError(f"{name}.parameters: a parameter is listed twice")
-    parameters = tuple(str(p) for p in params)
-    estimator = obj.get("estimator", "fekf")
-    if estimator not in ("ekf", "fekf"):
-        raise ConfigError(f"{name}.estimator: expected ekf or fekf, got {estimator!r}")
-    bounds_raw = obj.get("bounds", SubsystemConfig.bounds)
-    if not isinstance(bounds_raw, Sequence) or isinstance(bounds_raw, str) or len(bounds_raw) != 2:
-        raise ConfigError(f"{name}.bounds: expected [low, high]")
-    bounds = (
-        _positive(f"{name}.bounds[0]", bounds_raw[0]),
-        _positive(f"{name}.bounds[1]", bounds_raw[1]),
-    )
-    if not bounds[0] < 1.0 < bounds[1]:
-        raise ConfigError(f"{name}.bounds: expected low < 1 < high (relative to nominal)")
+def _subsystem_config(sub: SubsystemModel) -> SubsystemConfig:
+    assert sub.state is not None  # filled in by _check_subsystem
     return SubsystemConfig(
-        state=state,
-        parameters=parameters,
-        estimator=estimator,
-        measurement=measurement,
-        r=_auto_or_positive(f"{name}.r", obj.get("r", "auto")),
-        q_state=_auto_or_positive(f"{name}.q_state", obj.get("q_state", "auto")),
-        p0_state=_auto_or_positive(f"{name}.p0_state", obj.get("p0_state", "auto")),
-        q_parameters=_per_parameter(
-            f"{name}.q_parameters",
-            obj.get("q_parameters", DEFAULT_Q_PARAMETER),
-            parameters,
-            DEFAULT_Q_PARAMETER,
-        ),
-        p0_parameters=_per_parameter(
-            f"{name}.p0_parameters",
-            obj.get("p0_parameters", DEFAULT_P0_PARAMETER),
-            parameters,
-            DEFAULT_P0_PARAMETER,
-        ),
-        fuzzy=_parse_fuzzy(f"{name}.fuzzy", obj.get("fuzzy", {})),
-        bounds=bounds,
+        state=sub.state,
+        parameters=tuple(sub.parameters),
+        estimator=sub.estimator,
+        measurement=sub.measurement,
+        r=sub.r,
+        q_state=sub.q_state,
+        p0_state=sub.p0_state,
+        q_parameters=sub.per_parameter("q_parameters", DEFAULT_Q_PARAMETER),
+        p0_parameters=sub.per_parameter("p0_parameters", DEFAULT_P0_PARAMETER),
+        fuzzy=sub.fuzzy,
+        bounds=sub.bounds,
     )
-
-
-_CONFIG_FIELDS = (
-    "channels",
-    "sample_period_s",
-    "parameters",
-    "differentiator_window_s",
-    "max_missing_fraction",
-    "thresholds",
-    "min_duration_s",
-    "clear_after_s",
-    "set_gains",
-    "noise_std",
-    "max_candidate_size",
-    "max_candidates",
-    "subsystems",
-    "health_window_samples",
-)
-
-
-def _int_in(name: str, value: Any, lo: int, hi: int) -> int:
-    if not isinstance(value, int) or isinstance(value, bool) or not lo <= value <= hi:
-        raise ConfigError(f"{name}: expected an integer in [{lo}, {hi}], got {value!r}")
-    return value
-
-
-def _parse_channels(raw: Any) -> dict[str, str]:
-    obj = _object("channels", raw, CHANNELS)
-    channels = {c: c for c in CHANNELS}
-    for key, value in obj.items():
-        if not isinstance(value, str) or not value:
-            raise ConfigError(f"channels.{key}: expected a non-empty string, got {value!r}")
-        channels[key] = value
-    if len(set(channels.values())) != len(CHANNELS):
-        raise ConfigError("channels: two model channels map to the same stream channel")
-    return channels
-
-
-def _parse_parameters(raw: Any) -> dict[str, float]:
-    obj = _object("parameters", raw, PARAMETER_NAMES)
-    params = dict(NOMINAL)
-    for key, value in obj.items():
-        params[key] = _finite(f"parameters.{key}", value)
-    for key in ("c_hj", "r_il", "m_h", "m_r", "m_screw", "l_w", "j_m", "k_s", "k_1", "k_2"):
-        if params[key] <= 0.0:
-            raise ConfigError(f"parameters.{key}: must be positive")
-    return params
 
 
 def parse_config(raw: Mapping[str, Any]) -> DarrFekfConfig:
-    """Validate a JSON-like mapping into a :class:`DarrFekfConfig`.
+    """Validate a JSON-like mapping (:data:`CONFIG_MODEL`) into a :class:`DarrFekfConfig`.
 
     Raises:
-        ConfigError: naming the first bad field (unknown keys, wrong types, non-positive
-            values, a subsystem whose relation cannot be integrated or whose parameters are not
-            in it, "auto" noise with no calibration window, ...).
+        ConfigError: naming each bad field (unknown keys, wrong types, out-of-range values, a
+            subsystem whose relation cannot be integrated or whose parameters are not in it,
+            "auto" noise with no calibration window, a window too short for the derivatives).
     """
-    obj = _object("", raw, _CONFIG_FIELDS) if isinstance(raw, Mapping) else None
-    if obj is None:
-        raise ConfigError(f"config: expected an object, got {type(raw).__name__}")
-    thresholds = _parse_thresholds(obj.get("thresholds", {}))
-    set_gains_raw = obj.get("set_gains", ["k_q", "k_c"])
-    if not isinstance(set_gains_raw, Sequence) or isinstance(set_gains_raw, str):
-        raise ConfigError("set_gains: expected a list of parameter names")
-    for p in set_gains_raw:
-        if p not in PARAMETER_NAMES:
-            raise ConfigError(f"set_gains: unknown parameter {p!r}")
-    noise_raw = _object("noise_std", obj.get("noise_std", {}), CHANNELS)
-    noise = {
-        str(k): _non_negative(f"noise_std.{k}", v) for k, v in noise_raw.items() if v != "auto"
-    }
-    subs_raw = obj.get("subsystems", DEFAULT_SUBSYSTEMS)
-    if not isinstance(subs_raw, Mapping):
-        raise ConfigError("subsystems: expected an object by subsystem name")
-    subsystems = {str(k): _parse_subsystem(str(k), v) for k, v in sorted(subs_raw.items())}
-    sample_period = _positive("sample_period_s", obj.get("sample_period_s", 1.0e-4))
-    window_s = _positive("differentiator_window_s", obj.get("differentiator_window_s", 0.05))
-    missing = _finite("max_missing_fraction", obj.get("max_missing_fraction", 0.1))
-    if not 0.0 <= missing < 1.0:
-        raise ConfigError(f"max_missing_fraction: expected a number in [0, 1), got {missing!r}")
-    needs_noise = any(
-        s.r == "auto" or (s.measurement == "state" and s.q_state == "auto")
-        for s in subsystems.values()
-    )
-    if thresholds.window_s <= 0.0 and (thresholds.rule != "fixed" or needs_noise):
-        raise ConfigError(
-            "thresholds.window_s: a calibration window is needed (calibrated thresholds or "
-            '"auto" noise)'
-        )
+    try:
+        model = CONFIG_MODEL.model_validate(raw)
+    except ValidationError as exc:
+        raise config_error(NAME, exc) from None
     try:
         return DarrFekfConfig(
-            channels=_parse_channels(obj.get("channels", {})),
-            sample_period_s=sample_period,
-            parameters=_parse_parameters(obj.get("parameters", {})),
-            differentiator_window_s=window_s,
-            max_missing_fraction=missing,
-            thresholds=thresholds,
-            min_duration_s=_non_negative("min_duration_s", obj.get("min_duration_s", 0.002)),
-            clear_after_s=_positive("clear_after_s", obj.get("clear_after_s", 1.0)),
-            set_gains=tuple(str(p) for p in set_gains_raw),
-            noise_std=noise,
-            max_candidate_size=_int_in(
-                "max_candidate_size", obj.get("max_candidate_size", 3), 1, 6
-            ),
-            max_candidates=_int_in("max_candidates", obj.get("max_candidates", 100), 1, 10_000),
-            subsystems=subsystems,
-            health_window_samples=_int_in(
-                "health_window_samples", obj.get("health_window_samples", 10_000), 1, 100_000_000
-            ),
+            model=model,
+            channels={c: getattr(model.channels, c) for c in CHANNELS},
+            sample_period_s=model.sample_period_s,
+            parameters={p: float(getattr(model.parameters, p)) for p in PARAMETER_NAMES},
+            differentiator_window_s=model.differentiator_window_s,
+            max_missing_fraction=model.max_missing_fraction,
+            thresholds=model.thresholds,
+            min_duration_s=model.min_duration_s,
+            clear_after_s=model.clear_after_s,
+            set_gains=tuple(model.set_gains),
+            noise_std=model.noise_std.as_dict(),
+            max_candidate_size=model.max_candidate_size,
+            max_candidates=model.max_candidates,
+            subsystems={k: _subsystem_config(s) for k, s in model.subsystems.items()},
+            health_window_samples=model.health_window_samples,
+            sensors=model.sensors,
+            isolation=model.isolation,
         )
     except ValueError as exc:  # from _compile: a window too short for the derivative order
-        if isinstance(exc, ConfigError):
-            raise
-        raise ConfigError(f"differentiator_window_s: {exc}") from exc
+        raise ConfigError(f"{NAME}: differentiator_window_s: {exc}") from exc
 
 
 def config_to_dict(config: DarrFekfConfig) -> dict[str, Any]:
     """The full configuration with defaults filled in, JSON-serializable."""
-    thr = config.thresholds
-    return {
-        "channels": dict(config.channels),
-        "sample_period_s": config.sample_period_s,
-        "parameters": dict(config.parameters),
-        "differentiator_window_s": config.differentiator_window_s,
-        "max_missing_fraction": config.max_missing_fraction,
-        "thresholds": {
-            "rule": thr.rule,
-            "window_s": thr.window_s,
-            "margin": thr.margin,
-            "q": thr.q,
-            **({"values": list(thr.values)} if thr.values is not None else {}),
-        },
-        "min_duration_s": config.min_duration_s,
-        "clear_after_s": config.clear_after_s,
-        "set_gains": list(config.set_gains),
-        "noise_std": dict(config.noise_std),
-        "max_candidate_size": config.max_candidate_size,
-        "max_candidates": config.max_candidates,
-        "subsystems": {
-            key: {
-                "state": s.state,
-                "parameters": list(s.parameters),
-                "estimator": s.estimator,
-                "measurement": s.measurement,
-                "r": s.r,
-                "q_state": s.q_state,
-                "p0_state": s.p0_state,
-                "q_parameters": dict(zip(s.parameters, s.q_parameters, strict=True)),
-                "p0_parameters": dict(zip(s.parameters, s.p0_parameters, strict=True)),
-                "fuzzy": {
-                    "c": s.fuzzy.c,
-                    "window_s": s.fuzzy.window_s,
-                    "input_levels": list(s.fuzzy.input_levels),
-                    "output_levels": list(s.fuzzy.output_levels),
-                    "alpha_min": s.fuzzy.alpha_min,
-                },
-                "bounds": list(s.bounds),
-            }
-            for key, s in config.subsystems.items()
-        },
-        "health_window_samples": config.health_window_samples,
-    }
+    return config.model.model_dump(mode="json")
 
 
 def required_channels(config: DarrFekfConfig) -> tuple[str, ...]:
@@ -947,7 +1078,60 @@ def _compile(config: DarrFekfConfig) -> _Compiled:
     cfg[kern.CFG_HEALTH_N] = config.health_window_samples
     cfg[kern.CFG_N_SUB] = n_sub
     cfg[kern.CFG_BOX] = box
-    arrays = [cfg, w0, sub_cfg, sub_coef, sub_exp]
+    cfg[kern.CFG_N_SEG] = thr.segments
+    cfg[kern.CFG_SEG_OUTLIER] = thr.segment_outlier_ratio
+    cfg[kern.CFG_PEAK_RATIO] = thr.segment_peak_ratio
+    cfg[kern.CFG_SUSPICIOUS] = thr.suspicious_ratio
+    cfg[kern.CFG_REFUSE] = thr.refuse_ratio
+    cfg[kern.CFG_FALLBACK_SIGMAS] = thr.fallback_sigmas
+    cfg[kern.CFG_REF_NOISE : kern.CFG_REF_NOISE + kern.N_CHAN] = np.nan
+    if thr.reference is not None:
+        cfg[kern.CFG_HAS_REF] = 1.0
+        cfg[kern.CFG_REF_THR : kern.CFG_REF_THR + kern.N_RES] = thr.reference.thresholds.as_tuple()
+        cfg[kern.CFG_REF_RMS : kern.CFG_REF_RMS + kern.N_RES] = (
+            thr.reference.residual_rms.as_tuple()
+        )
+        ref_noise = thr.reference.noise_std.as_dict()
+        for c_idx, name in enumerate(CHANNELS):
+            if name in ref_noise:
+                cfg[kern.CFG_REF_NOISE + c_idx] = ref_noise[name] ** 2
+    sens = config.sensors
+    cfg[kern.CFG_SENSOR_LAMBDA] = math.exp(-config.sample_period_s / sens.noise_window_s)
+    cfg[kern.CFG_STUCK_N] = (
+        max(2, round(sens.stuck_s / config.sample_period_s)) if sens.enabled else math.inf
+    )
+    cfg[kern.CFG_NOISE_RATIO] = sens.noise_ratio if sens.enabled else math.inf
+    cfg[kern.CFG_SENSOR_MIN_N] = 3.0 * sens.noise_window_s / config.sample_period_s
+    cfg[kern.CFG_NOISE_PERSIST] = max(1, round(sens.noise_persist_s / config.sample_period_s))
+    cfg[kern.CFG_FIT_DEC] = config.isolation.fit_decimation
+    cfg[kern.CFG_FIT_LAMBDA] = math.exp(
+        -config.isolation.fit_decimation * config.sample_period_s / config.isolation.window_s
+    )
+    # expected residual variance per unit channel noise variance: squared norm of the FIR
+    # weights each residual puts on each channel (its terms' derivative filters, summed)
+    weights = kern.smoother_weights(box, config.sample_period_s, kern.MAX_ORDER)
+    res_gain2 = np.zeros((kern.N_RES, kern.N_CHAN))
+    for l_idx, res in enumerate(RESIDUALS):
+        for c_idx, name in enumerate(CHANNELS):
+            g = np.zeros(weights.shape[1])
+            for term in DARR_TERMS[res]:
+                if term.channel == name:
+                    g += _monomial(term, config.parameters) * weights[term.order]
+            res_gain2[l_idx, c_idx] = float(g @ g)
+    # fit column of parameter p: sum over the terms holding p of e_p c_j s_j
+    term_fit = np.zeros((len(term_coef), kern.N_PARAMS_MODEL))
+    j = 0
+    for res in RESIDUALS:
+        for term in DARR_TERMS[res]:
+            for name, exp in term.powers:
+                term_fit[j, PARAMETER_NAMES.index(name)] += exp * term_coef[j]
+            j += 1
+    sub_reads = np.zeros((max(n_sub, 1), kern.N_CHAN))
+    for i, key in enumerate(keys):
+        for term in DARR_TERMS["r" + key[1:]]:
+            if term.channel is not None:
+                sub_reads[i, CHANNELS.index(term.channel)] = 1.0
+    arrays = [cfg, w0, sub_cfg, sub_coef, sub_exp, res_gain2, term_fit, sub_reads]
     for a in arrays:
         a.setflags(write=False)
     return _Compiled(
@@ -966,6 +1150,9 @@ def _compile(config: DarrFekfConfig) -> _Compiled:
         sub_coef=sub_coef,
         sub_exp=sub_exp,
         sub_fuse=sub_fuse,
+        res_gain2=res_gain2,
+        term_fit=term_fit,
+        sub_reads=sub_reads,
         n_window=n_window,
         box=box,
         n_hist=kern.MAX_ORDER * box + 1,
@@ -975,6 +1162,60 @@ def _compile(config: DarrFekfConfig) -> _Compiled:
 
 
 # ----------------------------------------------------------------------------- state
+# Layout of the scalar block (``DarrFekfState.scalars``): part name -> (offset, length). The
+# kernel indexes it by the ``ST_*`` constants; code outside the kernel reads it by these names.
+SCALAR_PARTS: dict[str, tuple[int, int]] = {
+    "samples_seen": (kern.ST_N_SEEN, 1),
+    "t_first_s": (kern.ST_T_FIRST, 1),
+    "t_last_s": (kern.ST_T_LAST, 1),
+    "ring_position": (kern.ST_POS, 1),
+    "calibrated": (kern.ST_CALIBRATED, 1),
+    "calibration_buffer_rows": (kern.ST_CAL_BUF_N, 1),
+    "fault_active": (kern.ST_FAULT, 1),
+    "first_detected_s": (kern.ST_FIRST_T, 1),
+    "samples_below": (kern.ST_BELOW, 1),
+    "irregular_intervals": (kern.ST_IRREGULAR, 1),
+    "window_count": (kern.ST_WIN_COUNT, 1),
+    "window_t0_s": (kern.ST_WIN_T0, 1),
+    "window_fault": (kern.ST_WIN_FAULT, 1),
+    "window_mask": (kern.ST_WIN_MASK, 1),
+    "thresholds_ready": (kern.ST_THR_READY, 1),
+    "latched": (kern.ST_LATCH, kern.N_RES),
+    "samples_above": (kern.ST_ABOVE, kern.N_RES),
+    "thresholds": (kern.ST_THR, kern.N_RES),
+    "calibration_max": (kern.ST_CAL_MAX, kern.N_RES),
+    "last_residuals": (kern.ST_LAST_R, kern.N_RES),
+    "window_sum2": (kern.ST_WIN_SUM2, kern.N_RES),
+    "window_n": (kern.ST_WIN_N, kern.N_RES),
+    "window_peak_ratio": (kern.ST_WIN_MAX, kern.N_RES),
+    "last_valid": (kern.ST_LAST_VALID, kern.N_CHAN),
+    "missing_in_window": (kern.ST_MISS_COUNT, kern.N_CHAN),
+    "noise_sum2": (kern.ST_NOISE_SUM2, kern.N_CHAN),
+    "noise_n": (kern.ST_NOISE_N, kern.N_CHAN),
+    "noise_var": (kern.ST_NOISE_VAR, kern.N_CHAN),
+    "raw_sum2": (kern.ST_MEAN_SQ, kern.N_CHAN),
+    "previous_smoothed": (kern.ST_PREV_SMOOTH, kern.N_CHAN),
+    "calibration_sum2": (kern.ST_CAL_SUM2, kern.N_RES),
+    "calibration_n": (kern.ST_CAL_N, kern.N_RES),
+    "residual_var": (kern.ST_RES_VAR, kern.N_RES),
+    "calibration_state": (kern.ST_CAL_STATE, 1),
+    "calibration_flags": (kern.ST_CAL_FLAGS, 1),
+    "fit_samples": (kern.ST_FIT_N, 1),
+    "sensor_mask": (kern.ST_SENS_MASK, 1),
+    "sensor_check_samples": (kern.ST_SENS_N, 1),
+    "expected_residual_sd": (kern.ST_EXP_SD, kern.N_RES),
+    "calibration_robust_rms": (kern.ST_CAL_ROBUST, kern.N_RES),
+    "calibration_excluded_segments": (kern.ST_CAL_EXCLUDED, kern.N_RES),
+    "calibration_level_ratio": (kern.ST_CAL_RATIO, kern.N_RES),
+    "calibration_unchanged": (kern.ST_CAL_ZERO, kern.N_CHAN),
+    "calibration_compared": (kern.ST_CAL_RAW_N, kern.N_CHAN),
+    "sensor_noise_var": (kern.ST_SENS_VAR, kern.N_CHAN),
+    "sensor_unchanged_run": (kern.ST_SENS_RUN, kern.N_CHAN),
+    "subsystem_withheld": (kern.ST_SUB_WITHHELD, 7),
+    "sensor_noise_over": (kern.ST_SENS_ABOVE, kern.N_CHAN),
+}
+
+
 @dataclass(frozen=True)
 class DarrFekfState:
     """Everything carried between batches (arrays never modified in place: ``step`` copies).
@@ -982,14 +1223,20 @@ class DarrFekfState:
     Attributes:
         version: schema version (``STATE_VERSION``).
         t_last_s: time of the last sample seen (-inf before any).
-        scalars: (``darr_kernels.ST_LEN``,) counters, calibration and detection state, health
-            accumulators, thresholds and noise variances (``ST_*`` layout).
-        history: (9, stages, H) ring buffers of the smoother's box stages (stage 0: the raw
-            values, missing samples holding the last valid value).
-        box_sums: (9, stages) running sums of the box stages.
-        missing: (9, W) 1 where a sample of the smoother's support was missing.
-        subsystems: (subsystems, ``SS_LEN``) the subsystem filters (``SS_*`` layout).
-        calibration_buffer: (capacity, 7) |r| kept during a quantile calibration.
+        scalars: FloatArray  # (ST_LEN,) counters, calibration, detection and sensor-check
+            state, health accumulators, thresholds, noise variances: parts in
+            :data:`SCALAR_PARTS`, read with :meth:`part`.
+        history: FloatArray  # (9, stages, H) ring buffers of the smoother's box stages
+            (stage 0: the raw values, missing samples holding the last valid value).
+        box_sums: FloatArray  # (9, stages) running sums of the box stages.
+        missing: FloatArray  # (9, W) 1 where a sample of the smoother's support was missing.
+        subsystems: FloatArray  # (subsystems, SS_LEN) the subsystem filters (SS_* layout).
+        calibration_buffer: FloatArray  # (capacity, 8) |r| and segment kept for a quantile
+            calibration.
+        calibration_segments: FloatArray  # (7, MAX_SEGMENTS, 3) sum of r^2, count, max |r|
+            per residual and segment of the calibration window.
+        isolation_gram: FloatArray  # (FIT_DIM, FIT_DIM) weighted normal equations of the
+            isolation fit of the active fault (upper triangle).
     """
 
     version: int
@@ -1000,30 +1247,59 @@ class DarrFekfState:
     missing: FloatArray
     subsystems: FloatArray
     calibration_buffer: FloatArray
+    calibration_segments: FloatArray
+    isolation_gram: FloatArray
+
+    def part(self, name: str) -> FloatArray:
+        """A read-only part of the scalar block by name (:data:`SCALAR_PARTS`)."""
+        offset, length = SCALAR_PARTS[name]
+        view = self.scalars[offset : offset + length]
+        view.setflags(write=False)
+        return view
+
+    def value(self, name: str) -> float:
+        """A one-number part of the scalar block."""
+        return float(self.part(name)[0])
 
     @property
     def thresholds(self) -> FloatArray:
         """Thresholds in use (NaN before calibration)."""
-        return self.scalars[kern.ST_THR : kern.ST_THR + kern.N_RES].copy()
+        return self.part("thresholds").copy()
 
     @property
     def coherence_vector(self) -> tuple[int, ...]:
         """Latched coherence vector of the active fault (zeros when none)."""
-        return tuple(int(v) for v in self.scalars[kern.ST_LATCH : kern.ST_LATCH + kern.N_RES])
+        return tuple(int(v) for v in self.part("latched"))
 
     @property
     def fault_active(self) -> bool:
         """True between a detection and its clearance."""
-        return bool(self.scalars[kern.ST_FAULT] == 1.0)
+        return self.value("fault_active") == 1.0
+
+    @property
+    def sensor_flags(self) -> dict[str, str]:
+        """Sensors flagged by their own signal during the active fault: channel -> stuck/noisy."""
+        mask = int(self.value("sensor_mask"))
+        return _sensor_flags(mask)
 
     @property
     def noise_std(self) -> dict[str, float | None]:
         """Measurement noise standard deviation by model channel (None: not known yet)."""
-        var = self.scalars[kern.ST_NOISE_VAR : kern.ST_NOISE_VAR + kern.N_CHAN]
+        var = self.part("noise_var")
         return {
             c: (math.sqrt(v) if math.isfinite(v) else None)
             for c, v in zip(CHANNELS, var, strict=True)
         }
+
+
+def _sensor_flags(mask: int) -> dict[str, str]:
+    flags: dict[str, str] = {}
+    for c_idx, c in enumerate(CHANNELS):
+        if (mask >> c_idx) & 1:
+            flags[c] = "stuck"
+        elif (mask >> (kern.N_CHAN + c_idx)) & 1:
+            flags[c] = "noisy"
+    return flags
 
 
 def _frozen(a: FloatArray) -> FloatArray:
@@ -1044,15 +1320,19 @@ def initial_state(config: DarrFekfConfig) -> DarrFekfState:
     sc[kern.ST_LAST_VALID : kern.ST_LAST_VALID + kern.N_CHAN] = np.nan
     sc[kern.ST_PREV_SMOOTH : kern.ST_PREV_SMOOTH + kern.N_CHAN] = np.nan
     sc[kern.ST_RES_VAR : kern.ST_RES_VAR + kern.N_RES] = np.nan
-    sc[kern.ST_NOISE_VAR : kern.ST_NOISE_VAR + kern.N_CHAN] = [
-        config.noise_std[c] ** 2 if c in config.noise_std else np.nan for c in CHANNELS
-    ]
+    noise_var = [config.noise_std[c] ** 2 if c in config.noise_std else np.nan for c in CHANNELS]
+    sc[kern.ST_NOISE_VAR : kern.ST_NOISE_VAR + kern.N_CHAN] = noise_var
+    sc[kern.ST_SENS_VAR : kern.ST_SENS_VAR + kern.N_CHAN] = noise_var
+    for part in ("expected_residual_sd", "calibration_robust_rms", "calibration_level_ratio"):
+        offset, length = SCALAR_PARTS[part]
+        sc[offset : offset + length] = np.nan
     if config.thresholds.rule == "fixed":
         assert config.thresholds.values is not None
         sc[kern.ST_THR : kern.ST_THR + kern.N_RES] = config.thresholds.values
         sc[kern.ST_THR_READY] = 1.0
     if config.thresholds.window_s <= 0.0:
         sc[kern.ST_CALIBRATED] = 1.0
+        sc[kern.ST_CAL_STATE] = kern.CAL_CALIBRATED
     n_sub = len(config.subsystems)
     return DarrFekfState(
         version=STATE_VERSION,
@@ -1062,11 +1342,22 @@ def initial_state(config: DarrFekfConfig) -> DarrFekfState:
         box_sums=_frozen(np.zeros((kern.N_CHAN, kern.N_STAGES))),
         missing=_frozen(np.zeros((kern.N_CHAN, comp.n_window))),
         subsystems=_frozen(np.zeros((n_sub, kern.SS_LEN))),
-        calibration_buffer=_frozen(np.zeros((comp.cal_capacity, kern.N_RES))),
+        calibration_buffer=_frozen(np.zeros((comp.cal_capacity, kern.N_RES + 1))),
+        calibration_segments=_frozen(np.zeros((kern.N_RES, kern.MAX_SEGMENTS, kern.SEG_LEN))),
+        isolation_gram=_frozen(np.zeros((kern.FIT_DIM, kern.FIT_DIM))),
     )
 
 
-_ARRAYS = ("scalars", "history", "box_sums", "missing", "subsystems", "calibration_buffer")
+_ARRAYS = (
+    "scalars",
+    "history",
+    "box_sums",
+    "missing",
+    "subsystems",
+    "calibration_buffer",
+    "calibration_segments",
+    "isolation_gram",
+)
 
 
 def _encode(a: FloatArray) -> dict[str, Any]:
@@ -1093,11 +1384,51 @@ def dump_state(state: DarrFekfState) -> bytes:
     return json.dumps(doc, separators=(",", ":")).encode("ascii")
 
 
+def _upgrade_v1(doc: dict[str, Any]) -> dict[str, Any]:
+    """Version 1 -> 2: the calibration checks, sensor checks and isolation fit appended.
+
+    The new scalar parts start as a fresh state would have them, except the calibration
+    state, which is ``calibrated`` (unchecked: its flags are 0 and its ratios unknown) when the
+    version-1 state had finished calibrating, and the sensors' running noise variance, which
+    starts at the calibrated one. The quantile buffer gets a segment column (all segment 0);
+    the segment statistics and the fit start empty (the fit of an active fault then covers the
+    samples after the upgrade).
+    """
+    old = _decode(doc["scalars"])
+    if old.shape != (kern.ST_LEN_V1,):
+        raise EstimatorError("not a darr_fekf state: wrong scalar block (version 1)")
+    sc = np.zeros(kern.ST_LEN)
+    sc[: kern.ST_LEN_V1] = old
+    for part in ("expected_residual_sd", "calibration_robust_rms", "calibration_level_ratio"):
+        offset, length = SCALAR_PARTS[part]
+        sc[offset : offset + length] = np.nan
+    if old[kern.ST_CALIBRATED] == 1.0:
+        sc[kern.ST_CAL_STATE] = kern.CAL_CALIBRATED
+    sc[kern.ST_SENS_VAR : kern.ST_SENS_VAR + kern.N_CHAN] = old[
+        kern.ST_NOISE_VAR : kern.ST_NOISE_VAR + kern.N_CHAN
+    ]
+    buf = _decode(doc["calibration_buffer"])
+    new_buf = np.zeros((buf.shape[0], kern.N_RES + 1))
+    new_buf[:, : kern.N_RES] = buf
+    return {
+        **doc,
+        "version": 2,
+        "scalars": _encode(sc),
+        "calibration_buffer": _encode(new_buf),
+        "calibration_segments": _encode(np.zeros((kern.N_RES, kern.MAX_SEGMENTS, kern.SEG_LEN))),
+        "isolation_gram": _encode(np.zeros((kern.FIT_DIM, kern.FIT_DIM))),
+    }
+
+
+_UPGRADES = {1: _upgrade_v1}
+
+
 def load_state(data: bytes) -> DarrFekfState:
-    """Inverse of :func:`dump_state`.
+    """Inverse of :func:`dump_state`; older versions are upgraded (``_upgrade_vN``).
 
     Raises:
-        StateVersionError: the version is not ``STATE_VERSION``.
+        StateVersionError: the version is neither ``STATE_VERSION`` nor one that can be
+            upgraded.
         EstimatorError: the bytes are not a darr_fekf state.
     """
     try:
@@ -1106,15 +1437,20 @@ def load_state(data: bytes) -> DarrFekfState:
         raise EstimatorError(f"not a darr_fekf state: {exc}") from exc
     if not isinstance(doc, dict) or "version" not in doc:
         raise EstimatorError("not a darr_fekf state: no version")
-    if doc["version"] != STATE_VERSION:
+    version = doc["version"]
+    if version != STATE_VERSION and version not in _UPGRADES:
         raise StateVersionError(
-            f"darr_fekf state version {doc['version']!r} is not supported "
-            f"(expected {STATE_VERSION})"
+            f"darr_fekf state version {version!r} is not supported "
+            f"(expected {STATE_VERSION} or one of {sorted(_UPGRADES)})"
         )
     try:
+        while doc["version"] != STATE_VERSION:
+            doc = _UPGRADES[doc["version"]](doc)
         arrays = {name: _decode(doc[name]) for name in _ARRAYS}
         t_last = float.fromhex(doc["t_last_s"])
     except (KeyError, TypeError, ValueError) as exc:
+        if isinstance(exc, EstimatorError):
+            raise
         raise EstimatorError(f"not a darr_fekf state: {exc}") from exc
     if arrays["scalars"].shape != (kern.ST_LEN,):
         raise EstimatorError("not a darr_fekf state: wrong scalar block")
@@ -1128,7 +1464,9 @@ def _check_state(config: DarrFekfConfig, state: DarrFekfState) -> None:
         "box_sums": (kern.N_CHAN, kern.N_STAGES),
         "missing": (kern.N_CHAN, comp.n_window),
         "subsystems": (len(config.subsystems), kern.SS_LEN),
-        "calibration_buffer": (comp.cal_capacity, kern.N_RES),
+        "calibration_buffer": (comp.cal_capacity, kern.N_RES + 1),
+        "calibration_segments": (kern.N_RES, kern.MAX_SEGMENTS, kern.SEG_LEN),
+        "isolation_gram": (kern.FIT_DIM, kern.FIT_DIM),
     }
     for name, shape in shapes.items():
         if getattr(state, name).shape != shape:
@@ -1151,16 +1489,41 @@ def _mask_to_vector(mask: float) -> list[int]:
     return [(m >> i) & 1 for i in range(kern.N_RES)]
 
 
-def _component(vector: Sequence[int]) -> str:
-    return "+".join(f"s{i + 1}" for i, c in enumerate(vector) if c)
+def _component(vector: Sequence[int], flags: Mapping[str, str] | None = None) -> str:
+    parts = [f"s{i + 1}" for i, c in enumerate(vector) if c]
+    parts += [f"sensor:{c}" for c in (flags or {})]
+    return "+".join(parts)
 
 
+def _sensor_members(flags: Mapping[str, str]) -> tuple[str, ...]:
+    """Sensor faults allowed in candidate sets: bias and drift of every channel (the residuals
+    are their only evidence); stuck and increased noise only for sensors whose own signal
+    shows them (the checks see them directly, so an unflagged sensor is neither)."""
+    members = [sensor_fault_name(c, k) for c in CHANNELS for k in ("bias", "drift")]
+    members += [
+        sensor_fault_name(c, "stuck" if kind == "stuck" else "noise") for c, kind in flags.items()
+    ]
+    return tuple(members)
 
 
-def _candidates(config: DarrFekfConfig, vector: Sequence[int]) -> list[list[str]]:
-    return candidate_sets(
-        vector, config.set_gains, config.max_candidate_size, config.max_candidates
+def _candidates(
+    config: DarrFekfConfig, vector: Sequence[int], flags: Mapping[str, str] | None = None
+) -> list[list[str]]:
+    flags = flags or {}
+    found = candidate_sets(
+        vector,
+        config.set_gains,
+        config.max_candidate_size,
+        None,
+        sensor_faults=_sensor_members(flags),
     )
+    if flags:
+        # sets holding a sensor fault its own signal shows come first
+        flagged = {
+            sensor_fault_name(c, "stuck" if k == "stuck" else "noise") for c, k in flags.items()
+        }
+        found.sort(key=lambda s: (not any(m in flagged for m in s), len(s), s))
+    return found[: config.max_candidates]
 
 
 def _candidate_text(candidates: list[list[str]], limit: int = 6) -> str:
@@ -1169,16 +1532,140 @@ def _candidate_text(candidates: list[list[str]], limit: int = 6) -> str:
     return ", ".join(shown) + more if shown else "none consistent"
 
 
-def _event(row: FloatArray, config: DarrFekfConfig) -> EstimatorEvent:
+_CAL_STATES = {
+    kern.CAL_CALIBRATING: "calibrating",
+    kern.CAL_CALIBRATED: "calibrated",
+    kern.CAL_SUSPICIOUS: "suspicious",
+    kern.CAL_REFUSED: "refused",
+}
+
+
+def _calibration_reasons(config: DarrFekfConfig, state: DarrFekfState) -> list[str]:
+    """Why the calibration window was found suspicious or refused, one sentence each."""
+    flags = int(state.value("calibration_flags"))
+    thr = config.thresholds
+    level = "reference" if thr.reference is not None else "expected from the channels' noise"
+    ratio = state.part("calibration_level_ratio")
+    excluded = state.part("calibration_excluded_segments")
+    reasons: list[str] = []
+    if flags & kern.CALF_LEVEL_REFUSED:
+        high = [
+            f"{r} {ratio[i]:.3g}x" for i, r in enumerate(RESIDUALS) if ratio[i] > thr.refuse_ratio
+        ]
+        reasons.append(
+            f"residual level over the {level} level by more than {thr.refuse_ratio:g}: "
+            + ", ".join(high)
+            + " (a fault present over the whole window)"
+        )
+    if flags & kern.CALF_LEVEL:
+        high = [
+            f"{r} {ratio[i]:.3g}x"
+            for i, r in enumerate(RESIDUALS)
+            if thr.suspicious_ratio < ratio[i] <= thr.refuse_ratio
+        ]
+        reasons.append(f"residual level over the {level} level: " + ", ".join(high))
+    if flags & kern.CALF_SEGMENT:
+        seg = [f"{r} ({int(excluded[i])})" for i, r in enumerate(RESIDUALS) if excluded[i] > 0]
+        reasons.append(
+            "segments out of line with the rest of the window (a fault starting inside it), "
+            "excluded from the thresholds: " + ", ".join(seg)
+        )
+    if flags & kern.CALF_STUCK:
+        unchanged = state.part("calibration_unchanged")
+        compared = state.part("calibration_compared")
+        stuck = [
+            c
+            for i, c in enumerate(CHANNELS[: kern.SENSOR_CHANNELS])
+            if compared[i] > 0 and unchanged[i] >= 0.99 * compared[i]
+        ]
+        reasons.append("sensor did not change during the window: " + ", ".join(stuck))
+    if flags & kern.CALF_NOISE:
+        reasons.append("channel noise above the reference noise")
+    return reasons
+
+
+def calibration_detail(config: DarrFekfConfig, state: DarrFekfState) -> dict[str, Any]:
+    """The calibration phase and its checks, JSON-safe (``diagnosis.detail["calibration"]``)."""
+    code = state.value("calibration_state")
+    name = _CAL_STATES.get(code, "calibrating")
+    thr = config.thresholds
+    detail: dict[str, Any] = {"state": name, "window_s": thr.window_s, "rule": thr.rule}
+    if name == "calibrating":
+        t_first = state.value("t_first_s")
+        elapsed = state.t_last_s - t_first if math.isfinite(t_first) else 0.0
+        detail["elapsed_s"] = max(0.0, elapsed)
+        return detail
+    reasons = _calibration_reasons(config, state)
+    detail["reasons"] = reasons
+    detail["reference_used"] = thr.reference is not None
+    exp_sd = state.part("expected_residual_sd")
+    robust = state.part("calibration_robust_rms")
+    detail["residuals"] = {
+        r: {
+            "robust_rms": _finite_or_none(robust[i]),
+            "expected_rms": _finite_or_none(exp_sd[i]),
+            "level_ratio": _finite_or_none(state.part("calibration_level_ratio")[i]),
+            "excluded_segments": int(state.part("calibration_excluded_segments")[i]),
+        }
+        for i, r in enumerate(RESIDUALS)
+    }
+    if name == "refused":
+        if thr.rule == "fixed":
+            detail["action"] = "thresholds from the configuration kept; the window is not trusted"
+        elif thr.reference is not None:
+            detail["action"] = "thresholds from the configured fault-free reference"
+        else:
+            detail["action"] = (
+                f"thresholds at {thr.fallback_sigmas:g} x the residual sd expected from the "
+                "channels' noise; status unknown until a fault is detected or thresholds are "
+                "given (thresholds.reference or rule fixed)"
+            )
+    elif name == "suspicious":
+        detail["action"] = "thresholds from the segments in line with the rest of the window"
+    else:
+        detail["action"] = "thresholds calibrated"
+    if name == "calibrated":
+        # what to copy into thresholds.reference of other streams of this actuator
+        thresholds = state.part("thresholds")
+        noise = state.noise_std
+        if all(math.isfinite(v) and v > 0 for v in thresholds) and all(
+            math.isfinite(v) and v > 0 for v in robust
+        ):
+            detail["reference"] = {
+                "thresholds": {r: float(thresholds[i]) for i, r in enumerate(RESIDUALS)},
+                "residual_rms": {r: float(robust[i]) for i, r in enumerate(RESIDUALS)},
+                "noise_std": {c: v for c, v in noise.items() if v is not None and v > 0},
+            }
+    return detail
+
+
+def _calibration_events(
+    t: float, config: DarrFekfConfig, state: DarrFekfState
+) -> list[EstimatorEvent]:
+    """``calibration_refused`` or ``calibration_suspicious`` at the end of the window."""
+    detail = calibration_detail(config, state)
+    if detail["state"] in ("refused", "suspicious"):
+        return [EstimatorEvent(t_s=t, kind=f"calibration_{detail['state']}", detail=detail)]
+    return []
+
+
+def _event(row: FloatArray, config: DarrFekfConfig, state: DarrFekfState) -> EstimatorEvent:
     t = float(row[kern.EV_T])
     kind = row[kern.EV_KIND]
     if kind == kern.EV_CALIBRATED:
         thr = config.thresholds
+        cal_state = _CAL_STATES.get(float(row[kern.EV_CAL_STATE]), "calibrated")
         detail: dict[str, Any] = {
             "thresholds": {
                 r: _finite_or_none(row[kern.EV_THR + i]) for i, r in enumerate(RESIDUALS)
             },
-            "source": "config" if thr.rule == "fixed" else "calibrated",
+            "source": "config"
+            if thr.rule == "fixed"
+            else (
+                ("reference" if thr.reference is not None else "expected_level")
+                if cal_state == "refused"
+                else "calibrated"
+            ),
             "rule": thr.rule,
             "window_s": thr.window_s,
             "margin": thr.margin,
@@ -1187,27 +1674,34 @@ def _event(row: FloatArray, config: DarrFekfConfig) -> EstimatorEvent:
                 c: _finite_or_none(row[kern.EV_NOISE + i]) for i, c in enumerate(CHANNELS)
             },
             "lag_s": config.lag_s,
+            "calibration": cal_state,
         }
         return EstimatorEvent(t_s=t, kind="thresholds_calibrated", detail=detail)
     vector = _mask_to_vector(row[kern.EV_MASK])
+    flags = (
+        _sensor_flags(int(row[kern.EV_SENS_MASK])) if math.isfinite(row[kern.EV_SENS_MASK]) else {}
+    )
     residuals = [r for r, c in zip(RESIDUALS, vector, strict=True) if c]
     base = {
-        "component": _component(vector),
+        "component": _component(vector, flags),
         "residuals": residuals,
         "coherence_vector": vector,
+        "sensor_flags": flags,
         "first_detected_s": _finite_or_none(row[kern.EV_FIRST_T]),
         "lag_s": config.lag_s,
     }
     if kind == kern.EV_DETECTED:
         prev = _mask_to_vector(row[kern.EV_PREV_MASK])
+        prev_flags = _sensor_flags(int(row[kern.EV_PREV_SENS]))
         detail = {
             **base,
-            "candidates": _candidates(config, vector),
+            "candidates": _candidates(config, vector, flags),
             "detected_s": t,
-            "update": any(prev),
+            "update": any(prev) or bool(prev_flags),
             "new_residuals": [
                 r for r, c, p in zip(RESIDUALS, vector, prev, strict=True) if c and not p
             ],
+            "new_sensor_flags": {c: k for c, k in flags.items() if c not in prev_flags},
         }
         return EstimatorEvent(t_s=t, kind="fault_detected", detail=detail)
     if kind == kern.EV_CLEARED:
@@ -1247,19 +1741,199 @@ def _health(row: FloatArray, config: DarrFekfConfig) -> HealthWindow:
     )
 
 
-def _fault_reason(config: DarrFekfConfig, vector: Sequence[int]) -> str:
+def _fault_reason(
+    config: DarrFekfConfig, vector: Sequence[int], flags: Mapping[str, str] | None = None
+) -> str:
+    parts = []
     residuals = ", ".join(r for r, c in zip(RESIDUALS, vector, strict=True) if c)
-    return f"fault: residuals {residuals} over threshold; candidate fault sets " + _candidate_text(
-        _candidates(config, vector)
+    if residuals:
+        parts.append(f"residuals {residuals} over threshold")
+    if flags:
+        parts.append("sensor " + ", ".join(f"{c} {k}" for c, k in flags.items()))
+    return (
+        "fault: "
+        + "; ".join(parts)
+        + "; candidate fault sets "
+        + _candidate_text(_candidates(config, vector, flags))
     )
+
+
+# ----------------------------------------------------------------------------- isolation fit
+def _fit_columns(member: str) -> list[int]:
+    """Fit columns of a candidate member: a parameter's relative change and its ramp; a
+    sensor's bias, or bias and ramp for a drift. Stuck and noisy sensors have no parametric
+    form (empty)."""
+    if not member.startswith("sensor:"):
+        p = PARAMETER_NAMES.index(member)
+        return [p, kern.FIT_PRAMP + p]
+    _, channel, kind = member.split(":")
+    c = CHANNELS.index(channel)
+    if kind == "bias":
+        return [kern.FIT_BIAS + c]
+    if kind == "drift":
+        return [kern.FIT_BIAS + c, kern.FIT_RAMP + c]
+    return []
+
+
+def _hypothesis_pool(config: DarrFekfConfig, vector: Sequence[int]) -> list[tuple[str, ...]]:
+    """Sets the fit compares: sets of members (parameters outside the set gains, sensor bias
+    and drift), each member touching the coherence vector, whose signatures together cover it,
+    up to ``min(max_candidate_size, 2)`` members. Unlike the exact-match candidate sets, a
+    member may predict a relation that stayed below its threshold (a sensor bias whose effect
+    on one relation is small): the fit judges by magnitude."""
+    target = [bool(c) for c in vector]
+    members = [p for p in PARAMETER_NAMES if p not in config.set_gains] + [
+        sensor_fault_name(c, k) for c in CHANNELS for k in ("bias", "drift")
+    ]
+    touching = [
+        m for m in members if any(s and t for s, t in zip(ALL_SIGNATURES[m], target, strict=True))
+    ]
+    pool: list[tuple[str, ...]] = []
+    for size in range(1, min(config.max_candidate_size, 2) + 1):
+        for combo in itertools.combinations(touching, size):
+            covered = [False] * kern.N_RES
+            for m in combo:
+                covered = [a or bool(b) for a, b in zip(covered, ALL_SIGNATURES[m], strict=True)]
+            if all(c or not t for c, t in zip(covered, target, strict=True)):
+                pool.append(combo)
+    return pool
+
+
+def isolation_detail(config: DarrFekfConfig, state: DarrFekfState) -> dict[str, Any] | None:
+    """Sensor or parameter: the fit of the active fault's residuals on each candidate set.
+
+    Over the samples since detection (one in ``fit_decimation``) the kernel accumulates the
+    normal equations of ``r_l(t) ~ sum_h theta_h phi_(h,l)(t)``, weighted by the residuals'
+    expected variance, for the columns: relative change of each parameter p (``phi =
+    -sum_(terms with p) e_p c_j s_j``, so a relative change eps gives ``theta = -eps``) and its
+    ramp ``phi t``; a bias b of each channel (``phi = sum_(order-0 terms) c_j``, theta = b) and
+    a drift (ramp: ``sum_(order 0) c_j t + sum_(order 1) c_j``). For each set S the residual sum
+    of squares after the least-squares fit on S's columns gives its mean squared standardized
+    residual ``m_S`` (1: noise only). S is within the level when ``m_S <= max(consistency_floor,
+    consistency_ratio * min m, min m + consistency_share * (m_0 - min m))`` (``m_0``: no fault
+    set), and consistent when, besides, no proper subset of it is (parsimony: {A_h} within the
+    level makes {A_h, P_L bias} add nothing). Explanation, over the consistent sets:
+    ``sensor`` when a sensor's own signal is flagged, or when every consistent set holds a
+    sensor fault; ``parameter`` when none does; ``ambiguous`` otherwise; ``pending`` before
+    ``min_fit_s`` of fault.
+    """
+    if not state.fault_active:
+        return None
+    flags = state.sensor_flags
+    vector = state.coherence_vector
+    n_fit = state.value("fit_samples")  # effective count under the forgetting
+    fit_s = n_fit * config.isolation.fit_decimation * config.sample_period_s
+    detail: dict[str, Any] = {"fit_s": fit_s, "sensor_flags": dict(flags)}
+    if flags:
+        detail["explanation"] = "sensor"
+        detail["basis"] = (
+            "the sensor's own signal (" + ", ".join(f"{c} {k}" for c, k in flags.items()) + ")"
+        )
+        detail["hypotheses"] = []
+        return detail
+    if n_fit < 2 or not any(vector):
+        detail["explanation"] = "pending"
+        detail["hypotheses"] = []
+        return detail
+    upper = np.array(state.isolation_gram)
+    gram = np.triu(upper) + np.triu(upper, 1).T
+    r_col = kern.FIT_R
+    total = float(gram[r_col, r_col])
+    denom = n_fit * kern.N_RES
+    results: list[dict[str, Any]] = []
+    for combo in _hypothesis_pool(config, vector):
+        cols = sorted({c for m in combo for c in _fit_columns(m)})
+        g = gram[np.ix_(cols, cols)]
+        b = gram[cols, r_col]
+        scale = np.sqrt(np.maximum(np.diag(g), 0.0))
+        keep = scale > 0.0
+        if not keep.any():
+            continue
+        cols_k = [c for c, k in zip(cols, keep, strict=True) if k]
+        gs = g[np.ix_(keep, keep)] / np.outer(scale[keep], scale[keep])
+        bs = b[keep] / scale[keep]
+        coef_s, *_ = np.linalg.lstsq(gs + 1e-10 * np.eye(len(bs)), bs, rcond=None)
+        sse = max(total - float(bs @ coef_s), 0.0)
+        coef = dict(zip(cols_k, (coef_s / scale[keep]).tolist(), strict=True))
+        results.append(
+            {
+                "set": list(combo),
+                "mean_sq": sse / denom,
+                "estimates": _fit_estimates(combo, coef, config),
+            }
+        )
+    results.sort(key=lambda h: (h["mean_sq"], len(h["set"]), h["set"]))
+    best = results[0]["mean_sq"] if results else math.inf
+    iso = config.isolation
+    no_fault = total / denom
+    level = max(
+        iso.consistency_floor,
+        iso.consistency_ratio * best,
+        best + iso.consistency_share * max(no_fault - best, 0.0),
+    )
+    within = {tuple(h["set"]) for h in results if h["mean_sq"] <= level}
+    for h in results:
+        # parsimony: a set within the level whose proper subset is within it too adds nothing
+        h["within_level"] = tuple(h["set"]) in within
+        h["consistent"] = h["within_level"] and not any(
+            sub in within
+            for size in range(1, len(h["set"]))
+            for sub in itertools.combinations(h["set"], size)
+        )
+    consistent = [h for h in results if h["consistent"]]
+    results.sort(key=lambda h: (not h["consistent"], h["mean_sq"], len(h["set"]), h["set"]))
+    detail["no_fault_mean_sq"] = total / denom
+    detail["consistency_level"] = level
+    if fit_s < iso.min_fit_s or not consistent:
+        detail["explanation"] = "pending" if fit_s < iso.min_fit_s else "none_consistent"
+    else:
+        # a sensor fault in every consistent set: the sensor fault is established, and
+        # estimates computed through that sensor would absorb its error (withheld)
+        with_sensor = [any(m.startswith("sensor:") for m in h["set"]) for h in consistent]
+        detail["explanation"] = (
+            "sensor" if all(with_sensor) else "parameter" if not any(with_sensor) else "ambiguous"
+        )
+    detail["basis"] = "fit of the residuals since detection"
+    detail["hypotheses"] = results[:20]
+    return detail
+
+
+def _fit_estimates(
+    combo: Sequence[str], coef: Mapping[int, float], config: DarrFekfConfig
+) -> dict[str, Any]:
+    """The fitted fault sizes of a set: relative parameter change (at detection, and its rate),
+    sensor bias (channel unit) and drift rate (channel unit per s)."""
+    out: dict[str, Any] = {}
+    for m in combo:
+        if m.startswith("sensor:"):
+            _, channel, kind = m.split(":")
+            c = CHANNELS.index(channel)
+            entry = {"bias": coef.get(kern.FIT_BIAS + c), "unit": CHANNEL_UNITS[channel]}
+            if kind == "drift":
+                entry["drift_per_s"] = coef.get(kern.FIT_RAMP + c)
+            out[m] = entry
+        else:
+            p = PARAMETER_NAMES.index(m)
+            c0 = coef.get(p)
+            c1 = coef.get(kern.FIT_PRAMP + p)
+            out[m] = {
+                "relative_change": None if c0 is None else -c0,
+                "relative_change_per_s": None if c1 is None else -c1,
+                "nominal": config.parameters[m],
+            }
+    return out
 
 
 def _parameters(config: DarrFekfConfig, state: DarrFekfState) -> dict[str, Any]:
     """Running subsystems' estimates: per subsystem and fused (inverse-variance weighted)."""
     per_sub: dict[str, Any] = {}
     fused: dict[str, list[tuple[float, float]]] = {}
+    withheld = state.part("subsystem_withheld")
     for i, (key, sub) in enumerate(config.subsystems.items()):
         row = state.subsystems[i]
+        if withheld[i] == 1.0:
+            per_sub[key] = {"withheld": True, "parameters": {}}
+            continue
         if row[kern.SS_RUNNING] != 1.0:
             continue
         entries: dict[str, Any] = {}
@@ -1302,35 +1976,112 @@ def _bounds(est: float, var: float, nominal: float) -> dict[str, float | None]:
 
 def diagnosis_detail(config: DarrFekfConfig, state: DarrFekfState) -> dict[str, Any]:
     """The diagnostic picture of a state, JSON-safe (NaN becomes None)."""
-    sc = state.scalars
     vector = list(state.coherence_vector)
-    thr_ready = sc[kern.ST_THR_READY] == 1.0
+    thr_ready = state.value("thresholds_ready") == 1.0
+    thresholds = state.part("thresholds")
+    last_r = state.part("last_residuals")
     residuals = {
         r: {
-            "value": _finite_or_none(sc[kern.ST_LAST_R + i]),
-            "threshold": _finite_or_none(sc[kern.ST_THR + i]) if thr_ready else None,
+            "value": _finite_or_none(last_r[i]),
+            "threshold": _finite_or_none(thresholds[i]) if thr_ready else None,
             "exceeded": bool(vector[i]),
             "unit": RESIDUAL_UNITS[r],
         }
         for i, r in enumerate(RESIDUALS)
     }
+    flags = state.sensor_flags
     detail: dict[str, Any] = {
         "residuals": residuals,
         "coherence_vector": vector,
         "signature_matrix": {p: list(row) for p, row in SIGNATURES.items()},
-        "candidates": _candidates(config, vector),
+        "sensor_signature_matrix": {s: list(row) for s, row in SENSOR_SIGNATURES.items()},
+        "candidates": _candidates(config, vector, flags),
         "detectable": {p: any(row) for p, row in SIGNATURES.items()},
         "set_gains": list(config.set_gains),
         "fault_active": state.fault_active,
-        "first_detected_s": _finite_or_none(sc[kern.ST_FIRST_T]) if state.fault_active else None,
-        "calibrated": bool(sc[kern.ST_CALIBRATED] == 1.0),
+        "first_detected_s": _finite_or_none(state.value("first_detected_s"))
+        if state.fault_active
+        else None,
+        "sensor_flags": dict(flags),
+        "calibrated": state.value("calibrated") == 1.0,
+        "calibration": calibration_detail(config, state),
         "thresholds_ready": bool(thr_ready),
         "noise_std": state.noise_std,
         "lag_s": config.lag_s,
-        "irregular_intervals": int(sc[kern.ST_IRREGULAR]),
+        "irregular_intervals": int(state.value("irregular_intervals")),
     }
     detail.update(_parameters(config, state))
+    isolation = isolation_detail(config, state)
+    detail["isolation"] = isolation
+    withheld_subs = [k for k, v in detail["subsystems"].items() if v.get("withheld")]
+    reason = None
+    if isolation is not None and isolation["explanation"] == "sensor":
+        reason = (
+            "a sensor fault is the only consistent explanation ("
+            + isolation["basis"]
+            + "): the parameter estimates would absorb the sensor error"
+        )
+    elif withheld_subs:
+        reason = "subsystems " + ", ".join(withheld_subs) + " read a flagged sensor"
+    if reason is not None:
+        detail["parameters"] = {}
+        for v in detail["subsystems"].values():
+            v["parameters"] = {}
+            v["withheld"] = True
+        detail["parameters_withheld"] = reason
+    else:
+        detail["parameters_withheld"] = None
     return detail
+
+
+def _status(
+    config: DarrFekfConfig, state: DarrFekfState, detail: Mapping[str, Any]
+) -> StatusReport:
+    """Status at the end of a batch: ``alert`` while a fault is active; otherwise by the
+    calibration phase: ``learning`` while calibrating, ``unknown`` after a refused calibration
+    (thresholds not from this stream's fault-free data), ``watch`` after a suspicious one,
+    ``ok`` after a clean one."""
+    cal = detail["calibration"]
+    cal_note: str | None = None
+    if cal["state"] == "refused":
+        cal_note = "calibration refused: " + "; ".join(cal["reasons"]) + "; " + cal["action"]
+    elif cal["state"] == "suspicious":
+        cal_note = "calibration suspicious: " + "; ".join(cal["reasons"])
+    if state.fault_active:
+        reasons = [_fault_reason(config, state.coherence_vector, state.sensor_flags)]
+        iso = detail["isolation"]
+        if iso is not None and iso["explanation"] in (
+            "sensor",
+            "parameter",
+            "ambiguous",
+        ):
+            best = iso["hypotheses"][0]["set"] if iso["hypotheses"] else None
+            text = f"isolation: {iso['explanation']}"
+            if best:
+                text += " (best fit {" + ", ".join(best) + "})"
+            reasons.append(text)
+        if detail["parameters_withheld"]:
+            reasons.append("parameter estimates withheld: " + detail["parameters_withheld"])
+        if cal_note:
+            reasons.append(cal_note)
+        return StatusReport("alert", tuple(reasons))
+    if cal["state"] == "calibrating":
+        return StatusReport(
+            "learning",
+            (
+                f"calibrating thresholds: {cal.get('elapsed_s', 0.0):.3g} of "
+                f"{config.thresholds.window_s:g} s of stream time",
+            ),
+        )
+    if cal["state"] == "refused":
+        assert cal_note is not None
+        if config.thresholds.reference is not None or config.thresholds.rule == "fixed":
+            return StatusReport("watch", (cal_note,))
+        return StatusReport("unknown", (cal_note,))
+    if cal["state"] == "suspicious":
+        assert cal_note is not None
+        return StatusReport("watch", (cal_note,))
+    return StatusReport("ok")
 
 
 # ----------------------------------------------------------------------------- step
@@ -1385,12 +2136,17 @@ def step(
         comp.sub_exp,
         comp.sub_fuse,
         len(comp.fused),
+        comp.res_gain2,
+        comp.term_fit,
+        comp.sub_reads,
         arrays["scalars"],
         arrays["history"],
         arrays["box_sums"],
         arrays["missing"],
         arrays["subsystems"],
         arrays["calibration_buffer"],
+        arrays["calibration_segments"],
+        arrays["isolation_gram"],
         t,
         data,
         out,
@@ -1402,16 +2158,18 @@ def step(
         t_last_s=float(t[n - 1]),
         **{name: _frozen(a) for name, a in arrays.items()},
     )
-    if new_state.fault_active:
-        report = StatusReport("alert", (_fault_reason(config, new_state.coherence_vector),))
-    else:
-        report = StatusReport("ok")
+    detail = diagnosis_detail(config, new_state)
+    event_list: list[EstimatorEvent] = []
+    for row in events:
+        event_list.append(_event(row, config, new_state))
+        if row[kern.EV_KIND] == kern.EV_CALIBRATED:
+            event_list += _calibration_events(float(row[kern.EV_T]), config, new_state)
     outputs = StepOutputs(
         samples={name: out[i] for i, name in enumerate(names)},
         health=[_health(row, config) for row in windows],
-        events=[_event(row, config) for row in events],
-        diagnosis=Diagnosis(t_s=float(t[n - 1]), detail=diagnosis_detail(config, new_state)),
-        status=report,
+        events=event_list,
+        diagnosis=Diagnosis(t_s=float(t[n - 1]), detail=detail),
+        status=_status(config, new_state, detail),
     )
     return new_state, outputs
 

@@ -56,7 +56,24 @@ CFG_CLEAR = 8  # samples with every residual below threshold before a fault is c
 CFG_HEALTH_N = 9
 CFG_N_SUB = 10
 CFG_BOX = 11  # samples L of one box stage
-CFG_LEN = 12
+CFG_N_SEG = 12  # segments of the calibration window (robust statistics)
+CFG_SEG_OUTLIER = 13  # a segment with rms above this times the median segment rms is excluded
+CFG_PEAK_RATIO = 14  # a segment with a peak above this times the median segment rms is excluded
+CFG_SUSPICIOUS = 15  # robust rms / expected rms above this: calibration suspicious
+CFG_REFUSE = 16  # robust rms / expected rms above this: calibration refused
+CFG_FALLBACK_SIGMAS = 17  # thresholds after a refusal without reference: this times expected sd
+CFG_HAS_REF = 18  # 1.0: a fault-free reference (thresholds, residual rms) is configured
+CFG_SENSOR_LAMBDA = 19  # forgetting factor of the sensors' running noise variance
+CFG_STUCK_N = 20  # unchanged raw samples before a sensor counts as stuck
+CFG_NOISE_RATIO = 21  # running / calibrated noise variance above this: noisy sensor
+CFG_FIT_DEC = 22  # isolation fit: one sample in this many
+CFG_SENSOR_MIN_N = 23  # samples after calibration before the noise check runs
+CFG_REF_THR = 24  # 7 reference thresholds
+CFG_REF_RMS = CFG_REF_THR + 7  # 7 reference residual rms
+CFG_REF_NOISE = CFG_REF_RMS + 7  # 9 reference noise variances (NaN: none)
+CFG_NOISE_PERSIST = CFG_REF_NOISE + 9  # samples the running noise stays over the level: noisy
+CFG_FIT_LAMBDA = CFG_NOISE_PERSIST + 1  # forgetting factor of the isolation fit per fit sample
+CFG_LEN = CFG_FIT_LAMBDA + 1
 
 N_STAGES = MAX_ORDER + 2  # box stages: the smoother is a B-spline of degree N_STAGES - 1
 
@@ -142,7 +159,55 @@ ST_PREV_SMOOTH = ST_MEAN_SQ + N_CHAN  # C smoothed channel values at the previou
 ST_CAL_SUM2 = ST_PREV_SMOOTH + N_CHAN  # 7 sums of r^2 during calibration
 ST_CAL_N = ST_CAL_SUM2 + N_RES  # 7 counts
 ST_RES_VAR = ST_CAL_N + N_RES  # 7 calibrated mean squares of the residuals (NaN before)
-ST_LEN = ST_RES_VAR + N_RES
+ST_LEN_V1 = ST_RES_VAR + N_RES  # end of the version-1 layout; version 2 appends:
+ST_CAL_STATE = ST_LEN_V1  # CAL_* below
+ST_CAL_FLAGS = ST_CAL_STATE + 1  # bit mask of CALF_* reasons
+ST_FIT_N = ST_CAL_FLAGS + 1  # effective samples in the isolation fit (with forgetting)
+ST_SENS_MASK = ST_FIT_N + 1  # latched sensor flags as a bit mask (SENSOR_BITS)
+ST_SENS_N = ST_SENS_MASK + 1  # samples the sensor noise check has seen since calibration
+ST_EXP_SD = ST_SENS_N + 1  # 7 residual sd expected from the channels' noise (the model)
+ST_CAL_ROBUST = ST_EXP_SD + N_RES  # 7 median segment rms of the calibration window
+ST_CAL_EXCLUDED = ST_CAL_ROBUST + N_RES  # 7 segments excluded from the threshold statistic
+ST_CAL_RATIO = ST_CAL_EXCLUDED + N_RES  # 7 robust rms / expected (or reference) rms
+ST_CAL_ZERO = ST_CAL_RATIO + N_RES  # C unchanged consecutive raw samples in calibration
+ST_CAL_RAW_N = ST_CAL_ZERO + N_CHAN  # C raw samples compared in calibration
+ST_SENS_VAR = ST_CAL_RAW_N + N_CHAN  # C running noise variance (third differences)
+ST_SENS_RUN = ST_SENS_VAR + N_CHAN  # C current run of unchanged raw samples
+ST_SUB_WITHHELD = ST_SENS_RUN + N_CHAN  # 7 per subsystem: 1.0 while a flagged sensor stops it
+ST_SENS_ABOVE = ST_SUB_WITHHELD + 7  # C samples in a row with the running noise over the level
+ST_LEN = ST_SENS_ABOVE + N_CHAN
+
+# calibration states (ST_CAL_STATE)
+CAL_CALIBRATING = 0.0
+CAL_CALIBRATED = 1.0
+CAL_SUSPICIOUS = 2.0
+CAL_REFUSED = 3.0
+# calibration reasons (bits of ST_CAL_FLAGS)
+CALF_SEGMENT = 1  # a segment of the window is out of line with the others (onset inside)
+CALF_LEVEL = 2  # residual level above the expected (or reference) level: suspicious
+CALF_LEVEL_REFUSED = 4  # residual level far above the expected (or reference) level
+CALF_STUCK = 8  # a sensor did not change during the window
+CALF_NOISE = 16  # a channel's noise above the reference noise
+# sensor flags: bit c stuck, bit N_CHAN + c noisy
+SENSOR_BITS = np.array([float(2**i) for i in range(2 * N_CHAN)])
+SENSOR_CHANNELS = 7  # the seven sensors (the inputs x_v, U_a are commands, never flagged)
+
+# isolation fit columns: relative parameter changes, their ramps in time, then sensor bias
+# by channel, sensor ramp by channel, and the residual
+N_PARAMS_MODEL = 22
+FIT_PRAMP = N_PARAMS_MODEL
+FIT_BIAS = FIT_PRAMP + N_PARAMS_MODEL
+FIT_RAMP = FIT_BIAS + N_CHAN
+FIT_R = FIT_RAMP + N_CHAN
+FIT_DIM = FIT_R + 1
+FIT_FORGET_EVERY = 16  # fit samples between applications of the forgetting factor
+
+# calibration segment statistics (rows of cal_seg[ri, k])
+SEG_SUM2 = 0
+SEG_N = 1
+SEG_MAX = 2
+SEG_LEN = 3
+MAX_SEGMENTS = 32
 
 # event rows
 EV_T = 0
@@ -153,7 +218,11 @@ EV_FIRST_T = 4
 EV_SUB = 5  # subsystem index (estimation started)
 EV_THR = 6  # 7 thresholds (calibration)
 EV_NOISE = EV_THR + N_RES  # C noise standard deviations (calibration)
-EV_LEN = EV_NOISE + N_CHAN
+EV_CAL_STATE = EV_NOISE + N_CHAN  # calibration state (calibration)
+EV_CAL_FLAGS = EV_CAL_STATE + 1
+EV_SENS_MASK = EV_CAL_FLAGS + 1  # sensor flags (detection, clearance)
+EV_PREV_SENS = EV_SENS_MASK + 1
+EV_LEN = EV_PREV_SENS + 1
 EV_CALIBRATED = 1.0
 EV_DETECTED = 2.0
 EV_CLEARED = 3.0
@@ -642,31 +711,47 @@ def _quantile(values: FloatArray, q: float) -> float:
 
 
 @njit(cache=True, error_model="numpy")
+def _median(values: FloatArray) -> float:
+    """Median of a non-empty array (mean of the two middle values for an even count)."""
+    s = np.sort(values)
+    n = s.shape[0]
+    if n % 2 == 1:
+        return float(s[n // 2])
+    return float(0.5 * (s[n // 2 - 1] + s[n // 2]))
+
+
+@njit(cache=True, error_model="numpy")
 def _finish_calibration(
-    cfg: FloatArray, st: FloatArray, cal_buf: FloatArray, row: FloatArray
+    cfg: FloatArray,
+    st: FloatArray,
+    cal_buf: FloatArray,
+    cal_seg: FloatArray,
+    res_gain2: FloatArray,
+    row: FloatArray,
 ) -> None:
-    """Thresholds by the configured rule and noise variances; fills the event row."""
+    """Noise variances, the checks of the calibration window, thresholds; fills the event row.
+
+    1. Noise variance of each channel from the third differences of its raw samples
+       (``var(x_k - 3 x_(k-1) + 3 x_(k-2) - x_(k-3)) / 20``); a parameter fault or a sensor
+       bias or drift does not change it.
+    2. Expected residual sd from the model: each residual is a linear FIR of the channels,
+       ``sd_l^2 = sum_c G2[l, c] sigma_c^2`` with ``G2[l, c]`` the squared norm of the FIR
+       weights residual l puts on channel c (``res_gain2``).
+    3. Robust level: the window is split into segments; the median segment rms is the robust
+       level; a segment whose rms exceeds ``CFG_SEG_OUTLIER`` times it, or whose peak exceeds
+       ``CFG_PEAK_RATIO`` times it, is excluded from the threshold statistic (a fault that
+       starts inside the window) and makes the calibration suspicious.
+    4. Robust level over the expected (or reference) level: above ``CFG_SUSPICIOUS``
+       suspicious, above ``CFG_REFUSE`` refused (a fault present over the whole window); a
+       sensor that never changed during the window, or a channel noisier than its reference,
+       refuses it too.
+    5. Thresholds: by the configured rule over the kept segments; when refused, the
+       reference thresholds if configured, otherwise ``CFG_FALLBACK_SIGMAS`` times the
+       expected sd.
+    """
     rule = cfg[CFG_RULE]
-    n_buf = int(st[ST_CAL_BUF_N])
-    for ri in range(N_RES):
-        if rule == RULE_FIXED:
-            continue
-        peak = st[ST_CAL_MAX + ri]
-        if rule == RULE_QUANTILE:
-            col = np.empty(n_buf)
-            n_ok = 0
-            for i in range(n_buf):
-                v = cal_buf[i, ri]
-                if math.isfinite(v):
-                    col[n_ok] = v
-                    n_ok += 1
-            thr = cfg[CFG_MARGIN] * _quantile(col[:n_ok], cfg[CFG_Q]) if n_ok > 0 else np.nan
-        elif rule == RULE_MAX_MARGIN:
-            thr = cfg[CFG_MARGIN] * peak if peak > 0.0 else np.nan
-        else:
-            thr = peak if peak > 0.0 else np.nan
-        st[ST_THR + ri] = thr
-    # third differences of white noise of variance s2 have variance 20 s2
+    n_seg = int(cfg[CFG_N_SEG])
+    # 1. noise: third differences of white noise of variance s2 have variance 20 s2
     factor = 20.0
     for c in range(N_CHAN):
         if math.isfinite(st[ST_NOISE_VAR + c]):
@@ -677,9 +762,97 @@ def _finish_calibration(
             # floor: a noise-free channel still needs a positive variance in a filter
             floor = 1.0e-12 * st[ST_MEAN_SQ + c] / n_c
             st[ST_NOISE_VAR + c] = max(var, floor, 1.0e-300)
+    flags = 0
+    for c in range(N_CHAN):
+        ref = cfg[CFG_REF_NOISE + c]
+        if math.isfinite(ref) and ref > 0.0 and st[ST_NOISE_VAR + c] > cfg[CFG_NOISE_RATIO] * ref:
+            flags |= CALF_NOISE
+        if (
+            c < SENSOR_CHANNELS
+            and st[ST_CAL_RAW_N + c] > 0.0
+            and st[ST_CAL_ZERO + c] >= 0.99 * st[ST_CAL_RAW_N + c]
+        ):
+            flags |= CALF_STUCK
+    # 2.-4. levels and segments
+    n_buf = int(st[ST_CAL_BUF_N])
+    seg_rms = np.empty(n_seg)
+    keep = np.zeros(n_seg)
     for ri in range(N_RES):
-        if st[ST_CAL_N + ri] > 0.0:
-            st[ST_RES_VAR + ri] = st[ST_CAL_SUM2 + ri] / st[ST_CAL_N + ri]
+        var_e = 0.0
+        for c in range(N_CHAN):
+            var_e += res_gain2[ri, c] * st[ST_NOISE_VAR + c]
+        st[ST_EXP_SD + ri] = math.sqrt(var_e) if var_e > 0.0 else np.nan
+        n_ok = 0
+        for k in range(n_seg):
+            if cal_seg[ri, k, SEG_N] > 0.0:
+                seg_rms[n_ok] = math.sqrt(cal_seg[ri, k, SEG_SUM2] / cal_seg[ri, k, SEG_N])
+                n_ok += 1
+        med = _median(seg_rms[:n_ok]) if n_ok > 0 else np.nan
+        st[ST_CAL_ROBUST + ri] = med
+        excluded = 0
+        peak = 0.0
+        for k in range(n_seg):
+            keep[k] = 0.0
+            if cal_seg[ri, k, SEG_N] <= 0.0:
+                continue
+            rms_k = math.sqrt(cal_seg[ri, k, SEG_SUM2] / cal_seg[ri, k, SEG_N])
+            if (
+                med > 0.0
+                and rms_k <= cfg[CFG_SEG_OUTLIER] * med
+                and cal_seg[ri, k, SEG_MAX] <= cfg[CFG_PEAK_RATIO] * med
+            ):
+                keep[k] = 1.0
+                peak = max(peak, cal_seg[ri, k, SEG_MAX])
+            else:
+                excluded += 1
+        st[ST_CAL_EXCLUDED + ri] = excluded
+        if excluded > 0:
+            flags |= CALF_SEGMENT
+        level = cfg[CFG_REF_RMS + ri] if cfg[CFG_HAS_REF] == 1.0 else st[ST_EXP_SD + ri]
+        ratio = med / level if level > 0.0 else np.nan
+        st[ST_CAL_RATIO + ri] = ratio
+        if ratio > cfg[CFG_REFUSE]:
+            flags |= CALF_LEVEL_REFUSED
+        elif ratio > cfg[CFG_SUSPICIOUS]:
+            flags |= CALF_LEVEL
+        if rule == RULE_FIXED:
+            continue
+        if rule == RULE_QUANTILE:
+            col = np.empty(n_buf)
+            n_q = 0
+            for i in range(n_buf):
+                v = cal_buf[i, ri]
+                if math.isfinite(v) and keep[int(cal_buf[i, N_RES])] == 1.0:
+                    col[n_q] = v
+                    n_q += 1
+            thr = cfg[CFG_MARGIN] * _quantile(col[:n_q], cfg[CFG_Q]) if n_q > 0 else np.nan
+        elif rule == RULE_MAX_MARGIN:
+            thr = cfg[CFG_MARGIN] * peak if peak > 0.0 else np.nan
+        else:
+            thr = peak if peak > 0.0 else np.nan
+        st[ST_THR + ri] = thr
+    refused = (flags & (CALF_LEVEL_REFUSED | CALF_STUCK | CALF_NOISE)) != 0
+    for ri in range(N_RES):
+        if refused:
+            # explicit (fixed) thresholds stay; calibrated ones fall back
+            if cfg[CFG_HAS_REF] == 1.0:
+                if rule != RULE_FIXED:
+                    st[ST_THR + ri] = cfg[CFG_REF_THR + ri]
+                st[ST_RES_VAR + ri] = cfg[CFG_REF_RMS + ri] ** 2
+            else:
+                if rule != RULE_FIXED:
+                    st[ST_THR + ri] = cfg[CFG_FALLBACK_SIGMAS] * st[ST_EXP_SD + ri]
+                st[ST_RES_VAR + ri] = st[ST_EXP_SD + ri] ** 2
+        elif st[ST_CAL_N + ri] > 0.0:
+            # the filters' noise: the robust level, so that a faulty segment does not inflate it
+            st[ST_RES_VAR + ri] = st[ST_CAL_ROBUST + ri] ** 2
+    if refused:
+        st[ST_CAL_STATE] = CAL_REFUSED
+    elif flags != 0:
+        st[ST_CAL_STATE] = CAL_SUSPICIOUS
+    else:
+        st[ST_CAL_STATE] = CAL_CALIBRATED
+    st[ST_CAL_FLAGS] = flags
     st[ST_CALIBRATED] = 1.0
     if rule != RULE_FIXED:
         st[ST_THR_READY] = 1.0
@@ -687,6 +860,8 @@ def _finish_calibration(
         row[EV_THR + ri] = st[ST_THR + ri]
     for c in range(N_CHAN):
         row[EV_NOISE + c] = math.sqrt(st[ST_NOISE_VAR + c])
+    row[EV_CAL_STATE] = st[ST_CAL_STATE]
+    row[EV_CAL_FLAGS] = flags
 
 
 @njit(cache=True, error_model="numpy")
@@ -775,12 +950,17 @@ def darr_batch(
     sub_exp: FloatArray,
     sub_fuse: IntArray,
     n_fused: int,
+    res_gain2: FloatArray,
+    term_fit: FloatArray,
+    sub_reads: FloatArray,
     st: FloatArray,
     hist: FloatArray,
     sums: FloatArray,
     miss: FloatArray,
     sub_st: FloatArray,
     cal_buf: FloatArray,
+    cal_seg: FloatArray,
+    gram: FloatArray,
     t: FloatArray,
     data: FloatArray,
     out: FloatArray,
@@ -839,6 +1019,14 @@ def darr_batch(
     noise_var_s = np.empty(N_CHAN)
     vec = np.zeros((WV_ROWS, WV_LEN))
     mats = np.zeros((3, MAX_DIM, MAX_DIM))
+    phi = np.zeros((FIT_DIM, N_RES))
+    nz = np.zeros(FIT_DIM, dtype=np.int64)
+    fit_w = np.empty(N_RES)
+    n_seg = int(cfg[CFG_N_SEG])
+    sens_lambda = cfg[CFG_SENSOR_LAMBDA]
+    stuck_n = cfg[CFG_STUCK_N]
+    noise_ratio = cfg[CFG_NOISE_RATIO]
+    fit_dec = int(cfg[CFG_FIT_DEC])
     pos = int(st[ST_POS])
     for k in range(n):
         tk = t[k]
@@ -896,17 +1084,29 @@ def darr_batch(
         # --- calibration window
         if st[ST_CALIBRATED] == 0.0 and cal_s > 0.0:
             if tk - st[ST_T_FIRST] < cal_s:
+                seg = min(int((tk - st[ST_T_FIRST]) / cal_s * n_seg), n_seg - 1)
                 for ri in range(N_RES):
                     if math.isfinite(r[ri]):
                         st[ST_CAL_MAX + ri] = max(st[ST_CAL_MAX + ri], abs(r[ri]))
                         st[ST_CAL_SUM2 + ri] += r[ri] * r[ri]
                         st[ST_CAL_N + ri] += 1.0
+                        cal_seg[ri, seg, SEG_SUM2] += r[ri] * r[ri]
+                        cal_seg[ri, seg, SEG_N] += 1.0
+                        cal_seg[ri, seg, SEG_MAX] = max(cal_seg[ri, seg, SEG_MAX], abs(r[ri]))
                 if rule == RULE_QUANTILE and ready:
                     nb = int(st[ST_CAL_BUF_N])
                     if nb < cal_buf.shape[0]:
                         for ri in range(N_RES):
                             cal_buf[nb, ri] = abs(r[ri])
+                        cal_buf[nb, N_RES] = seg
                         st[ST_CAL_BUF_N] = nb + 1
+                if st[ST_N_SEEN] >= 2.0:
+                    p1 = pos - 1 if pos >= 1 else pos - 1 + n_hist
+                    for c in range(N_CHAN):
+                        if math.isfinite(data[c, k]) and miss[c, (mpos - 1) % n_win] == 0.0:
+                            st[ST_CAL_RAW_N + c] += 1.0
+                            if hist[c, 0, pos] == hist[c, 0, p1]:
+                                st[ST_CAL_ZERO + c] += 1.0
                 if ready:
                     # third difference of the raw samples: the signal's share is (w dt)^3,
                     # white noise of variance s2 gives 20 s2
@@ -926,13 +1126,54 @@ def darr_batch(
                 row[:] = np.nan
                 row[EV_T] = tk
                 row[EV_KIND] = EV_CALIBRATED
-                _finish_calibration(cfg, st, cal_buf, row)
+                _finish_calibration(cfg, st, cal_buf, cal_seg, res_gain2, row)
+                for c in range(N_CHAN):
+                    st[ST_SENS_VAR + c] = st[ST_NOISE_VAR + c]
                 n_ev += 1
+        # --- sensor self-checks after calibration: stuck (raw value unchanged for stuck_n
+        # samples) and noisy (running noise variance over noise_ratio times the calibrated one)
+        sens_now = 0
+        if st[ST_CALIBRATED] == 1.0 and st[ST_N_SEEN] >= 4.0:
+            p1 = pos - 1 if pos >= 1 else pos - 1 + n_hist
+            p2 = pos - 2 if pos >= 2 else pos - 2 + n_hist
+            p3 = pos - 3 if pos >= 3 else pos - 3 + n_hist
+            st[ST_SENS_N] += 1.0
+            for c in range(SENSOR_CHANNELS):
+                if math.isfinite(data[c, k]):
+                    if hist[c, 0, pos] == hist[c, 0, p1]:
+                        st[ST_SENS_RUN + c] += 1.0
+                    else:
+                        st[ST_SENS_RUN + c] = 0.0
+                if st[ST_MISS_COUNT + c] == 0.0:
+                    e = (
+                        hist[c, 0, pos]
+                        - 3.0 * hist[c, 0, p1]
+                        + 3.0 * hist[c, 0, p2]
+                        - hist[c, 0, p3]
+                    )
+                    st[ST_SENS_VAR + c] = (
+                        sens_lambda * st[ST_SENS_VAR + c] + (1.0 - sens_lambda) * e * e / 20.0
+                    )
+                if st[ST_SENS_RUN + c] >= stuck_n:
+                    sens_now |= 1 << c
+                if (
+                    st[ST_SENS_N] >= cfg[CFG_SENSOR_MIN_N]
+                    and st[ST_SENS_VAR + c] > noise_ratio * noise_var[c]
+                ):
+                    st[ST_SENS_ABOVE + c] += 1.0
+                else:
+                    st[ST_SENS_ABOVE + c] = 0.0
+                # a plant transient (a fault exciting a stiff mode) raises the third
+                # differences for a while; increased sensor noise stays
+                if st[ST_SENS_ABOVE + c] >= cfg[CFG_NOISE_PERSIST]:
+                    sens_now |= 1 << (N_CHAN + c)
         # --- detection, latching, clearance
         if st[ST_THR_READY] == 1.0:
-            any_above = False
+            any_above = sens_now != 0
             prev_mask = 0.0
-            changed = False
+            prev_sens = int(st[ST_SENS_MASK])
+            changed = (prev_sens | sens_now) != prev_sens
+            st[ST_SENS_MASK] = float(prev_sens | sens_now)
             for ri in range(N_RES):
                 if st[ST_LATCH + ri] == 1.0:
                     prev_mask += BITS[ri]
@@ -949,6 +1190,8 @@ def darr_batch(
                 if st[ST_FAULT] == 0.0:
                     st[ST_FAULT] = 1.0
                     st[ST_FIRST_T] = tk
+                    st[ST_FIT_N] = 0.0
+                    gram[:, :] = 0.0
                 st[ST_BELOW] = 0.0
                 events = _push(events, n_ev)
                 row = events[n_ev]
@@ -958,6 +1201,8 @@ def darr_batch(
                 row[EV_MASK] = _mask(st)
                 row[EV_PREV_MASK] = prev_mask
                 row[EV_FIRST_T] = st[ST_FIRST_T]
+                row[EV_SENS_MASK] = st[ST_SENS_MASK]
+                row[EV_PREV_SENS] = prev_sens
                 n_ev += 1
             elif st[ST_FAULT] == 1.0:
                 st[ST_BELOW] = 0.0 if any_above else st[ST_BELOW] + 1.0
@@ -969,14 +1214,85 @@ def darr_batch(
                     row[EV_KIND] = EV_CLEARED
                     row[EV_MASK] = _mask(st)
                     row[EV_FIRST_T] = st[ST_FIRST_T]
+                    row[EV_SENS_MASK] = st[ST_SENS_MASK]
                     n_ev += 1
                     st[ST_FAULT] = 0.0
                     st[ST_BELOW] = 0.0
+                    st[ST_SENS_MASK] = 0.0
+                    for i in range(n_sub):
+                        st[ST_SUB_WITHHELD + i] = 0.0
                     for ri in range(N_RES):
                         st[ST_LATCH + ri] = 0.0
                         st[ST_ABOVE + ri] = 0.0
                     for i in range(n_sub):
                         sub_st[i, SS_RUNNING] = 0.0
+        # --- isolation fit of the active fault: weighted normal equations of the residuals
+        # on the fault directions (relative parameter changes, sensor bias and ramp by channel)
+        # (from one smoother window after detection: the smoothed step of a sudden fault is
+        # a transient that neither a bias nor a parameter change describes)
+        if (
+            st[ST_FAULT] == 1.0
+            and ready
+            and int(st[ST_N_SEEN]) % fit_dec == 0
+            and tk - st[ST_FIRST_T] >= n_win * dt_nom
+        ):
+            all_finite = True
+            for ri in range(N_RES):
+                if not math.isfinite(r[ri]):
+                    all_finite = False
+            if all_finite:
+                phi[:, :] = 0.0
+                t_rel = tk - st[ST_FIRST_T]
+                for j in range(n_terms):
+                    c = term_chan[j]
+                    value = 1.0 if c < 0 else sig[c, term_order[j]]
+                    l_j = term_res[j]
+                    for p in range(N_PARAMS_MODEL):
+                        f = term_fit[j, p]
+                        if f != 0.0:
+                            phi[p, l_j] += f * value
+                    if c >= 0:
+                        if term_order[j] == 0:
+                            phi[FIT_BIAS + c, l_j] += term_coef[j]
+                            phi[FIT_RAMP + c, l_j] += term_coef[j] * t_rel
+                        elif term_order[j] == 1:
+                            phi[FIT_RAMP + c, l_j] += term_coef[j]
+                for p in range(N_PARAMS_MODEL):
+                    for ri in range(N_RES):
+                        phi[FIT_PRAMP + p, ri] = phi[p, ri] * t_rel
+                for ri in range(N_RES):
+                    phi[FIT_R, ri] = r[ri]
+                    sd = st[ST_EXP_SD + ri]
+                    if not (sd > 0.0):
+                        sd = math.sqrt(st[ST_RES_VAR + ri])
+                    fit_w[ri] = 1.0 / (sd * sd) if sd > 0.0 else 0.0
+                # exponential forgetting: the fit follows a fault whose course changes (a ramp
+                # that stops) with constant and ramp columns over about the last window;
+                # applied every FIT_FORGET_EVERY fit samples (lambda^FIT_FORGET_EVERY) to save
+                # the full pass over the matrix
+                fit_count = int(st[ST_N_SEEN]) // fit_dec
+                fit_lambda = cfg[CFG_FIT_LAMBDA]
+                if fit_lambda < 1.0 and fit_count % FIT_FORGET_EVERY == 0:
+                    chunk = fit_lambda**FIT_FORGET_EVERY
+                    for a in range(FIT_DIM):
+                        for b in range(a, FIT_DIM):
+                            gram[a, b] *= chunk
+                    st[ST_FIT_N] *= chunk
+                # only the nonzero entries of each residual's row of phi (about a third)
+                for ri in range(N_RES):
+                    w_l = fit_w[ri]
+                    n_nz = 0
+                    for a in range(FIT_DIM):
+                        if phi[a, ri] != 0.0:
+                            nz[n_nz] = a
+                            n_nz += 1
+                    for i_a in range(n_nz):
+                        a = nz[i_a]
+                        pa = phi[a, ri] * w_l
+                        for i_b in range(i_a, n_nz):
+                            b = nz[i_b]
+                            gram[a, b] += pa * phi[b, ri]
+                st[ST_FIT_N] += 1.0
         # --- estimators of the implicated subsystems, at the smoothed signals' time (lag)
         for c in range(N_CHAN):
             smooth[c] = sig[c, 0] if ready else np.nan
@@ -990,7 +1306,16 @@ def darr_batch(
             chan = int(sc[SC_STATE_CHAN])
             res = int(sc[SC_RES])
             relation = sc[SC_RELATION] == 1.0
-            if ss[SS_RUNNING] == 1.0:
+            # a sensor flagged stuck or noisy corrupts the relations that read it: no estimate
+            sens_mask = int(st[ST_SENS_MASK])
+            for c in range(N_CHAN):
+                if sub_reads[i, c] == 1.0 and (
+                    ((sens_mask >> c) & 1) == 1 or ((sens_mask >> (N_CHAN + c)) & 1) == 1
+                ):
+                    st[ST_SUB_WITHHELD + i] = 1.0
+            if st[ST_SUB_WITHHELD + i] == 1.0:
+                ss[SS_RUNNING] = 0.0
+            elif ss[SS_RUNNING] == 1.0:
                 if relation:
                     usable = math.isfinite(r[res])
                     relation_step(
