@@ -76,6 +76,7 @@ D_EP_SUM = 7  # sum of w d
 D_EP_SUMSQ = 8  # sum of w d^2
 D_EP_N = 9  # sum of w
 D_LEN = 10
+D_TIMES = (D_ABOVE_T, D_ONSET_T, D_BELOW_T, D_DETECTED_T)  # NaN when unset
 
 # health-window accumulators
 W_COUNT = 0

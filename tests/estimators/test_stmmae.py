@@ -6,6 +6,7 @@ from __future__ import annotations
 import copy
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -524,7 +525,9 @@ def _model(**changes):
 def test_config_errors_name_the_field(raw, field) -> None:
     with pytest.raises(ConfigError) as info:
         stmmae.parse_config(raw)
-    assert str(info.value).startswith(field)
+    message = str(info.value)
+    assert message.startswith("stmmae: ")
+    assert field in message, message
 
 
 def test_registry_and_warm_up() -> None:
@@ -554,3 +557,55 @@ def test_episode_statistics_are_precision_weighted() -> None:
     assert kern.episode_swing(plain, 0) == pytest.approx(0.2)
     kern._episode_add(plain, 0, 1.0, np.inf)  # not finite: ignored
     assert kern.episode_mean(plain, 0) == pytest.approx(0.1)
+
+
+# ----------------------------------------------------------------------------- contract
+DATA = Path(__file__).parent / "data"
+
+
+@pytest.mark.parametrize("version", [1, 2])
+def test_older_state_fixtures_load_and_step(version) -> None:
+    """States dumped by earlier code (version 1: equal-weight episode sums; version 2) load,
+    keep their filters and probabilities, and step on: the stuck right aileron of the fixture's
+    flight (6 s, stuck at +12 deg from 2 s) stays the active fault."""
+    blob = (DATA / f"stmmae_state_v{version}.bin").read_bytes()
+    assert json.loads(blob)["version"] == version
+    config = stmmae.parse_config({"health_window_samples": 250})
+    state = stmmae.load_state(blob)
+    assert state.version == stmmae.STATE_VERSION
+    doc = json.loads(blob)
+    assert state.t_last_s == float.fromhex(doc["t_last_s"])
+    parts = stmmae.state_parts(config, state)
+    assert parts.probabilities.sum() == pytest.approx(1.0)
+    assert [f["component"] for f in stmmae.active_faults(config, state)] == ["aileron_right"]
+    t, ch, _ = simulate_flight(8.0, faults=ONE_FAULT_EARLY, seed=5)
+    keep = t > state.t_last_s
+    state, out = stmmae.step(
+        config, state, Batch(t_s=t[keep], channels={k: v[keep] for k, v in ch.items()})
+    )
+    assert state.version == stmmae.STATE_VERSION
+    assert out.status is not None and out.status.status == "alert"
+    assert "aileron_right" in out.status.reasons[0]
+
+
+ONE_FAULT_EARLY = (SurfaceFault("aileron_right", 2.0, 20.0, "stuck", position_deg=12.0),)
+
+
+def test_unknown_state_version_raises() -> None:
+    blob = (DATA / "stmmae_state_v2.bin").read_bytes()
+    for bad in (0, 99):
+        with pytest.raises(StateVersionError, match=str(bad)):
+            stmmae.load_state(blob.replace(b'"version":2', f'"version":{bad}'.encode()))
+
+
+def test_config_model_schema_and_named_state_parts() -> None:
+    schema = stmmae.CONFIG_MODEL.model_json_schema()
+    props = schema["properties"]
+    assert "deg" in props["min_deflection_error_deg"]["description"]
+    assert props["hold_s"]["default"] == 0.1
+    config = stmmae.parse_config({})
+    parts = stmmae.state_parts(config, stmmae.initial_state(config))
+    nh, na = config.arrays.x0.shape
+    assert parts.x.shape == (nh, na) and parts.P.shape == (nh, na, na)
+    assert parts.decisions.shape == (nh - 1, kern.D_LEN)
+    assert not parts.x.flags.writeable
