@@ -54,7 +54,7 @@ from estimators.kernels.stmmae_kernels import IntArray
 from estimators.models.small_uav import reference_model
 
 NAME = "stmmae"
-STATE_VERSION = 2
+STATE_VERSION = 3
 
 Variant = Literal["improved", "strong_tracking", "emmae"]
 Likelihood = Literal["euclidean", "gaussian"]
@@ -227,7 +227,46 @@ class StmmaeConfig(EstimatorConfigModel):
         0.05, gt=0.0, le=0.5, description="clearance level of a surface's fault probability"
     )
     hold_s: Number = Field(0.1, ge=0.0, le=3600.0, description="detection hold time, s")
-    clear_hold_s: Number = Field(0.1, ge=0.0, le=3600.0, description="clearance hold time, s")
+    clear_hold_s: Number = Field(
+        1.0,
+        ge=0.0,
+        le=3600.0,
+        description="clearance hold time, s: the clearance condition must hold this long",
+    )
+    min_log_likelihood_ratio: Number = Field(
+        2.0,
+        ge=0.0,
+        le=1e6,
+        description="smallest log-likelihood ratio of the fault filter against the no-fault "
+        "filter, summed over the detection hold, for a detection (nats)",
+    )
+    rebase_on_detection: bool = Field(
+        True,
+        strict=True,
+        description="on detection every other filter takes the faulty surface at its fault "
+        "filter's estimate (a second fault is then isolated against the first); clearance "
+        "then needs the surface to follow its command again",
+    )
+    clear_deflection_deg: Number = Field(
+        1.5,
+        gt=0.0,
+        le=180.0,
+        description="rebased bank: clearance band of the smoothed |deflection estimate - "
+        "command|, deg",
+    )
+    clear_smoothing_s: Number = Field(
+        0.5,
+        gt=0.0,
+        le=3600.0,
+        description="time constant of the smoothed deflection error of the clearance test, s",
+    )
+    oscillation_correlation: Number = Field(
+        -0.45,
+        gt=-1.0,
+        lt=0.0,
+        description="a fault is oscillating when the autocorrelation of its deflection history "
+        "(0.05 s block means over the kind span) falls below this at some lag",
+    )
     onset_probability: Number = Field(
         0.5, gt=0.0, le=1.0, description="level whose crossing marks a fault's onset"
     )
@@ -238,13 +277,21 @@ class StmmaeConfig(EstimatorConfigModel):
         0.2, gt=0.0, le=3600.0, description="time constant of the smoothed deflection estimate, s"
     )
     fault_kind_window_s: Number = Field(
-        2.0, gt=0.0, le=3600.0, description="span after detection over which the kind is judged, s"
+        5.0,
+        ge=1.0,
+        le=kern.KIND_BLOCKS * kern.KIND_BLOCK_S,
+        description="span from the start of the detection hold over which the fault kind is "
+        "judged, s (longer than half the slowest oscillation period to be recognised)",
     )
     deflection_limit_deg: Number = Field(
         30.0, gt=0.0, le=180.0, description="clip of the deflection estimate, deg"
     )
     oscillation_swing_deg: Number = Field(
-        2.0, gt=0.0, le=180.0, description="swing above which a fault is 'oscillating', deg"
+        2.0,
+        gt=0.0,
+        le=180.0,
+        description="swing (2 std of the deflection estimate) an oscillating fault must also "
+        "exceed, deg",
     )
     min_deflection_error_deg: Number = Field(
         1.0,
@@ -374,6 +421,12 @@ def _kernel_vector(config: StmmaeConfig) -> FloatArray:
     cfg[kern.CFG_MIN_ERR] = math.radians(config.min_deflection_error_deg)
     cfg[kern.CFG_LIMIT] = math.radians(config.deflection_limit_deg)
     cfg[kern.CFG_KIND_WINDOW_S] = config.fault_kind_window_s
+    cfg[kern.CFG_REBASE] = 1.0 if config.rebase_on_detection else 0.0
+    cfg[kern.CFG_CLEAR_DEFL] = math.radians(config.clear_deflection_deg)
+    cfg[kern.CFG_CLEAR_SMOOTH_S] = config.clear_smoothing_s
+    cfg[kern.CFG_MIN_LLR] = config.min_log_likelihood_ratio
+    cfg[kern.CFG_OSC_CORR] = config.oscillation_correlation
+    cfg[kern.CFG_OSC_SWING] = math.radians(config.oscillation_swing_deg)
     cfg.setflags(write=False)
     return cfg
 
@@ -485,11 +538,15 @@ class StmmaeState:
         version: schema version (``STATE_VERSION``).
         t_last_s: time of the last sample seen (-inf before any).
         vector: FloatArray  # (layout.length,) packed parts, never modified in place.
+        layout_version: the layout ``vector`` has: ``STATE_VERSION``, or 2 for a version-2
+            state just loaded, whose new parts need the configuration and are added by the
+            first :func:`state_parts` or :func:`step` (see :func:`_upgrade_layout_v2`).
     """
 
     version: int
     t_last_s: float
     vector: FloatArray
+    layout_version: int = STATE_VERSION
 
 
 @dataclass(frozen=True)
@@ -509,6 +566,8 @@ class StateParts:
         probabilities: FloatArray  # (nh,) hypothesis probabilities.
         u_last: FloatArray  # (m,) last valid inputs (commands).
         decisions: FloatArray  # (s, kern.D_LEN) decision fields per surface (``D_*``).
+        kind_blocks: FloatArray  # (s, kern.KIND_BLOCKS) 0.05 s block means of the deflection
+            estimate over the kind span (rad).
         window: FloatArray  # (kern.W_LEN,) accumulators of the open health window (``W_*``).
     """
 
@@ -522,6 +581,7 @@ class StateParts:
     probabilities: FloatArray
     u_last: FloatArray
     decisions: FloatArray
+    kind_blocks: FloatArray
     window: FloatArray
 
 
@@ -538,7 +598,7 @@ def state_parts(config: StmmaeConfig, state: StmmaeState) -> StateParts:
         EstimatorError: the state does not belong to this configuration.
     """
     lay = layout(config)
-    vec = state.vector
+    vec = _current_vector(config, state)
     if vec.shape != (lay.length,):
         raise EstimatorError(
             f"state of length {vec.shape[0]} does not fit this configuration "
@@ -557,7 +617,8 @@ def state_parts(config: StmmaeConfig, state: StmmaeState) -> StateParts:
         V_started=blocks[:, v_off + p * p],
         probabilities=vec[lay.probs : lay.probs + nh],
         u_last=vec[lay.u_last : lay.u_last + m],
-        decisions=vec[lay.decisions : lay.window].reshape(nh - 1, kern.D_LEN),
+        decisions=vec[lay.decisions : lay.kind_blocks].reshape(nh - 1, kern.D_LEN),
+        kind_blocks=vec[lay.kind_blocks : lay.window].reshape(nh - 1, kern.KIND_BLOCKS),
         window=vec[lay.window : lay.window + kern.W_LEN],
     )
 
@@ -581,13 +642,16 @@ def initial_state(config: StmmaeConfig) -> StmmaeState:
         d = lay.decisions + h * kern.D_LEN
         for idx in kern.D_TIMES:
             vec[d + idx] = np.nan
+        vec[d + kern.D_BLK_IDX] = -1.0
+        vec[d + kern.D_KIND_CORR] = np.nan
     vec.setflags(write=False)
     return StmmaeState(version=STATE_VERSION, t_last_s=-math.inf, vector=vec)
 
 
 def dump_state(state: StmmaeState) -> bytes:
-    """Versioned byte form of the state (exact round trip; see :func:`dump_vector_state`)."""
-    return dump_vector_state(NAME, state.version, state.t_last_s, state.vector)
+    """Versioned byte form of the state (exact round trip; see :func:`dump_vector_state`). A
+    loaded version-2 state not stepped yet is written back as the version-2 state it is."""
+    return dump_vector_state(NAME, state.layout_version, state.t_last_s, state.vector)
 
 
 def _upgrade_v1(doc: dict[str, Any]) -> dict[str, Any]:
@@ -599,7 +663,51 @@ def _upgrade_v1(doc: dict[str, Any]) -> dict[str, Any]:
     return {**doc, "version": 2}
 
 
+_V2_D_LEN = 10  # decision fields per surface in versions 1 and 2
+
+
+def _upgrade_layout_v2(config: StmmaeConfig, vector: FloatArray) -> FloatArray:
+    """Version 2 -> 3 (needs the configuration, so it runs at the first use of a loaded state,
+    not in :func:`load_state`): the filters, probabilities, last inputs and health-window
+    accumulators are kept; each surface's ten decision fields are kept and the new ones start
+    as a fresh state has them, except that an active fault's kind span restarts at the last
+    sample (its kind is judged ``fault_kind_window_s`` later; its episode sums are kept for the
+    stuck position) and the clearance smoothing starts from the last smoothed estimate minus
+    the last command. The kind-block history starts empty."""
+    lay = layout(config)
+    s = lay.nh - 1
+    old_dec_end = lay.decisions + s * _V2_D_LEN
+    if vector.shape != (old_dec_end + kern.W_LEN,):
+        raise EstimatorError(
+            f"version-2 state of length {vector.shape[0]} does not fit this configuration "
+            f"(expected {old_dec_end + kern.W_LEN})"
+        )
+    fresh = initial_state(config).vector.copy()
+    fresh[: lay.decisions] = vector[: lay.decisions]
+    old = vector[lay.decisions : old_dec_end].reshape(s, _V2_D_LEN)
+    dec = fresh[lay.decisions : lay.kind_blocks].reshape(s, kern.D_LEN)
+    dec[:, :_V2_D_LEN] = old
+    u_last = vector[lay.u_last : lay.u_last + lay.m]
+    t_prev = vector[kern.ST_T_PREV]
+    for h, col in enumerate(config.surface_inputs):
+        if old[h, kern.D_SMOOTH_SET] == 1.0:
+            dec[h, kern.D_CSMOOTH] = old[h, kern.D_SMOOTH] - u_last[col]
+        if old[h, kern.D_ACTIVE] == 1.0:
+            dec[h, kern.D_KIND_T0] = t_prev
+    fresh[lay.window :] = vector[old_dec_end:]
+    fresh.setflags(write=False)
+    return fresh
+
+
+def _current_vector(config: StmmaeConfig, state: StmmaeState) -> FloatArray:
+    """The state's vector in the current layout."""
+    if state.layout_version == 2:
+        return _upgrade_layout_v2(config, state.vector)
+    return state.vector
+
+
 _UPGRADES: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {1: _upgrade_v1}
+_LAYOUT_VERSIONS = (2, STATE_VERSION)  # versions whose vector this code reads directly
 
 
 def load_state(data: bytes) -> StmmaeState:
@@ -616,16 +724,17 @@ def load_state(data: bytes) -> StmmaeState:
         raise EstimatorError(f"not an STMMAE state: {exc}") from exc
     if not isinstance(doc, dict) or not isinstance(doc.get("version"), int):
         raise EstimatorError("not an STMMAE state: no version")
-    if doc["version"] != STATE_VERSION and doc["version"] not in _UPGRADES:
+    if doc["version"] not in _LAYOUT_VERSIONS and doc["version"] not in _UPGRADES:
         raise StateVersionError(
             f"an STMMAE state version {doc['version']!r} is not supported "
-            f"(reads {STATE_VERSION} and upgrades {sorted(_UPGRADES)})"
+            f"(reads {list(_LAYOUT_VERSIONS)}, upgrades {sorted(_UPGRADES)})"
         )
-    while doc["version"] != STATE_VERSION:
+    while doc["version"] not in _LAYOUT_VERSIONS:
         doc = _UPGRADES[doc["version"]](doc)
+    version = int(doc["version"])
     blob = json.dumps(doc, separators=(",", ":")).encode("ascii")
-    t_last, vec = load_vector_state(blob, NAME, STATE_VERSION, "an STMMAE")
-    return StmmaeState(version=STATE_VERSION, t_last_s=t_last, vector=vec)
+    t_last, vec = load_vector_state(blob, NAME, version, "an STMMAE")
+    return StmmaeState(version=STATE_VERSION, t_last_s=t_last, vector=vec, layout_version=version)
 
 
 def filter_estimates(
@@ -659,46 +768,86 @@ def _deg(value: float) -> float | None:
     return None if v is None else round(math.degrees(v), 6)
 
 
-def _fault_kind(swing_rad: float, config: StmmaeConfig) -> str:
-    return "oscillating" if swing_rad > math.radians(config.oscillation_swing_deg) else "stuck"
+FAULT_KINDS: dict[float, str] = {
+    kern.KIND_PENDING: "pending",
+    kern.KIND_STUCK: "stuck",
+    kern.KIND_OSCILLATING: "oscillating",
+}
+
+
+def _detail(
+    config: StmmaeConfig,
+    hyp: int,
+    code: float,
+    mean_rad: float,
+    swing_rad: float,
+    corr: float,
+    onset_s: float,
+    detected_s: float,
+) -> dict[str, Any]:
+    """Detail of a fault (events, diagnosis and status reasons share it, so they agree).
+
+    ``fault_kind`` is ``"pending"`` until the kind span closes (``fault_kind_window_s`` after
+    the start of the detection hold; a ``fault_classified`` event then gives the judgement),
+    ``"stuck"`` (with ``stuck_position_deg``) or ``"oscillating"``."""
+    kind = FAULT_KINDS[float(code)]
+    return {
+        "component": config.hypotheses[hyp],
+        "fault_kind": kind,
+        "stuck_position_deg": _deg(mean_rad) if kind == "stuck" else None,
+        "deflection_swing_deg": _deg(swing_rad),
+        "deflection_autocorrelation_min": _finite(corr),
+        "onset_s": _finite(onset_s),
+        "detected_s": _finite(detected_s),
+    }
 
 
 def _fault_detail(config: StmmaeConfig, hyp: int, d: FloatArray) -> dict[str, Any]:
     """Detail of an active fault from its decision fields."""
-    swing = kern.episode_swing(d.reshape(1, -1), 0)
-    kind = _fault_kind(swing, config)
-    mean = kern.episode_mean(d.reshape(1, -1), 0)
-    return {
-        "component": config.hypotheses[hyp],
-        "fault_kind": kind,
-        "stuck_position_deg": _deg(mean) if kind == "stuck" else None,
-        "deflection_swing_deg": _deg(swing),
-        "onset_s": _finite(d[kern.D_ONSET_T]),
-        "detected_s": _finite(d[kern.D_DETECTED_T]),
-    }
+    dec = d.reshape(1, -1)
+    return _detail(
+        config,
+        hyp,
+        d[kern.D_KIND],
+        kern.episode_mean(dec, 0),
+        kern.episode_swing(dec, 0),
+        d[kern.D_KIND_CORR],
+        d[kern.D_ONSET_T],
+        d[kern.D_DETECTED_T],
+    )
+
+
+EVENT_KINDS: dict[int, str] = {
+    kern.EV_DETECTED: "fault_detected",
+    kern.EV_CLASSIFIED: "fault_classified",
+    kern.EV_CLEARED: "fault_cleared",
+}
 
 
 def _event(row: FloatArray, config: StmmaeConfig) -> EstimatorEvent:
-    hyp = int(row[kern.EV_HYP])
-    kind = _fault_kind(float(row[kern.EV_SWING]), config)
-    detail: dict[str, Any] = {
-        "component": config.hypotheses[hyp],
-        "fault_kind": kind,
-        "stuck_position_deg": _deg(row[kern.EV_MEAN]) if kind == "stuck" else None,
-        "deflection_swing_deg": _deg(row[kern.EV_SWING]),
-        "onset_s": _finite(row[kern.EV_ONSET_T]),
-        "detected_s": _finite(row[kern.EV_DETECTED_T]),
-    }
-    if row[kern.EV_KIND] == kern.EV_CLEARED:
+    detail = _detail(
+        config,
+        int(row[kern.EV_HYP]),
+        row[kern.EV_FAULT_KIND],
+        row[kern.EV_MEAN],
+        row[kern.EV_SWING],
+        row[kern.EV_CORR],
+        row[kern.EV_ONSET_T],
+        row[kern.EV_DETECTED_T],
+    )
+    kind = EVENT_KINDS[int(row[kern.EV_KIND])]
+    if kind == "fault_cleared":
         detail["cleared_s"] = _finite(row[kern.EV_CLEARED_T])
-        return EstimatorEvent(t_s=float(row[kern.EV_T]), kind="fault_cleared", detail=detail)
-    return EstimatorEvent(t_s=float(row[kern.EV_T]), kind="fault_detected", detail=detail)
+    return EstimatorEvent(t_s=float(row[kern.EV_T]), kind=kind, detail=detail)
 
 
 def _fault_reason(f: dict[str, Any]) -> str:
+    """Status reason of an active fault, from the same detail as its events."""
     if f["fault_kind"] == "stuck":
         return f"fault: {f['component']} stuck at {f['stuck_position_deg']:.1f} deg"
-    return f"fault: {f['component']} oscillating, swing {f['deflection_swing_deg']:.1f} deg"
+    if f["fault_kind"] == "oscillating":
+        return f"fault: {f['component']} oscillating, swing {f['deflection_swing_deg']:.1f} deg"
+    return f"fault: {f['component']} not following its command (stuck or oscillating: pending)"
 
 
 def active_faults(config: StmmaeConfig, state: StmmaeState) -> list[dict[str, Any]]:
@@ -793,6 +942,8 @@ def step(config: StmmaeConfig, state: StmmaeState, batch: Batch) -> tuple[Stmmae
             belong to this configuration.
     """
     names = sample_output_names(config)
+    if state.layout_version != STATE_VERSION:
+        state = StmmaeState(STATE_VERSION, state.t_last_s, _current_vector(config, state))
     state_parts(config, state)  # raises if the state does not fit the configuration
     t = np.ascontiguousarray(batch.t_s, dtype=np.float64)
     n = int(t.shape[0])
