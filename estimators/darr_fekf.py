@@ -433,12 +433,6 @@ class DarrFekfConfig:
 # --------------------------------------------------------------------- parsing helpers
 
 
-
-
-
-
-
-
 def _auto_or_positive(name: str, value: Any) -> float | Literal["auto"]:
     if value == "auto":
         return "auto"
@@ -1153,8 +1147,6 @@ def _mask_to_vector(mask: float) -> list[int]:
 
 def _component(vector: Sequence[int]) -> str:
     return "+".join(f"s{i + 1}" for i, c in enumerate(vector) if c)
-
-
 
 
 def _candidates(config: DarrFekfConfig, vector: Sequence[int]) -> list[list[str]]:

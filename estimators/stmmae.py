@@ -240,8 +240,21 @@ class StmmaeConfig(EstimatorConfigModel):
         description="smallest log-likelihood ratio of the fault filter against the no-fault "
         "filter, summed over the detection hold, for a detection (nats)",
     )
-    rebase_on_detection: bool = Field(
+    pair_hypotheses: bool = Field(
         True,
+        strict=True,
+        description="add one filter per pair of surfaces (both deflections free) so that two "
+        "overlapping faults have a hypothesis that explains them; decisions then use each "
+        "surface's marginal fault probability",
+    )
+    pair_probability_floor: Number = Field(
+        0.0001,
+        gt=0.0,
+        le=0.01,
+        description="probability floor of each pair hypothesis (a double fault is rarer)",
+    )
+    rebase_on_detection: bool = Field(
+        False,
         strict=True,
         description="on detection every other filter takes the faulty surface at its fault "
         "filter's estimate (a second fault is then isolated against the first); clearance "
@@ -318,8 +331,13 @@ class StmmaeConfig(EstimatorConfigModel):
     def _consistent(self) -> StmmaeConfig:
         if self.clear_probability >= self.detect_probability:
             raise ValueError("clear_probability: must be below detect_probability")
-        if 1.0 - len(self.model.surfaces) * self.probability_floor <= 0.5:
-            raise ValueError("probability_floor: too large for the number of hypotheses")
+        s = len(self.model.surfaces)
+        pairs = s * (s - 1) // 2 if self.pair_hypotheses else 0
+        if 1.0 - s * self.probability_floor - pairs * self.pair_probability_floor <= 0.5:
+            raise ValueError(
+                "probability_floor: too large for the number of hypotheses (the floors of all "
+                "fault hypotheses must sum to less than 0.5)"
+            )
         if self.fading_weights is not None and len(self.fading_weights) != len(self.model.states):
             raise ValueError(
                 f"fading_weights: expected {len(self.model.states)} numbers (one per model state)"
@@ -328,8 +346,12 @@ class StmmaeConfig(EstimatorConfigModel):
 
     @property
     def hypotheses(self) -> tuple[str, ...]:
-        """``nominal`` then the surfaces."""
-        return (NOMINAL, *self.model.surfaces)
+        """``nominal``, the surfaces, then (with ``pair_hypotheses``) each pair ``a+b``."""
+        names = self.model.surfaces
+        return tuple(
+            "+".join(names[i] for i in members) if members else NOMINAL
+            for members in hypothesis_members(self)
+        )
 
     @cached_property
     def kernel_vector(self) -> FloatArray:
@@ -431,21 +453,35 @@ def _kernel_vector(config: StmmaeConfig) -> FloatArray:
     return cfg
 
 
+def hypothesis_members(config: StmmaeConfig) -> tuple[tuple[int, ...], ...]:
+    """Surfaces (indices among the monitored surfaces) each hypothesis declares faulty:
+    ``()`` for the no-fault filter, ``(i,)`` for each surface, then ``(i, j)``, ``i < j``,
+    for each pair when ``pair_hypotheses`` is set."""
+    s = len(config.model.surfaces)
+    out: list[tuple[int, ...]] = [(), *((i,) for i in range(s))]
+    if config.pair_hypotheses:
+        out += [(i, j) for i in range(s) for j in range(i + 1, s)]
+    return tuple(out)
+
+
 def build_bank(config: StmmaeConfig) -> kern.BankArrays:
-    """The bank's matrices: filter 0 is the model itself (its extra state fixed at zero);
-    filter ``h`` augments the state with surface ``h``'s deflection ``d``:
+    """The bank's matrices: filter 0 is the model itself (its extra states fixed at zero);
+    a fault filter augments the state with the deflection ``d_i`` of each surface it declares
+    faulty (one, or two for a pair), in slots ``n, n + 1``:
 
-        [x; d]_{k+1} = [[F, G_h], [0, 1]] [x; d]_k + G_(0,h) (u_k - u*) - G_h u*_h
-        Q_h = blkdiag(Q, q_d),  q_d = deflection_diffusion * dt,  P0_h = blkdiag(P0, s_d^2)
+        [x; d]_{k+1} = [[F, G_S], [0, I]] [x; d]_k + G_(0,S) (u_k - u*) - G_S u*_S
+        Q_S = blkdiag(Q, q_d I),  q_d = deflection_diffusion * dt,  P0_S = blkdiag(P0, s_d^2 I)
 
-    with ``G_h`` the surface's input column and ``G_(0,h)`` the input matrix with that column set
-    to zero.
+    with ``G_S`` the input columns of the surfaces ``S`` and ``G_(0,S)`` the input matrix with
+    those columns set to zero. Unused slots stay identically zero.
     """
     mdl = config.model
     f, g, h, q, r, p0 = (mdl.matrix(k) for k in MATRIX_KEYS)
     n, m = g.shape
     surf_idx = [i for i, inp in enumerate(mdl.inputs) if inp.surface]
-    nh, na = 1 + len(surf_idx), n + 1
+    members = hypothesis_members(config)
+    n_slots = max(len(mem) for mem in members)
+    nh, na = len(members), n + n_slots
     u_trim = np.array(mdl.u_trim)
     x_trim = np.array(mdl.x_trim)
     q_d = math.radians(1.0) ** 2 * config.deflection_diffusion_deg2_s * mdl.dt_s
@@ -458,23 +494,26 @@ def build_bank(config: StmmaeConfig) -> kern.BankArrays:
     p0a = np.zeros((nh, na, na))
     weights = np.ones(n) if config.fading_weights is None else np.array(config.fading_weights)
     aw = np.ones((nh, na))
-    for hyp in range(nh):
+    slot_surface = np.full((nh, n_slots), -1, dtype=np.int64)
+    floors = np.empty(nh)
+    for hyp, mem in enumerate(members):
         phi[hyp, :n, :n] = f
         gin[hyp, :n, :] = g
         qa[hyp, :n, :n] = q
         p0a[hyp, :n, :n] = p0
         aw[hyp, :n] = weights
-        if hyp == 0:
-            continue
-        col = surf_idx[hyp - 1]
-        phi[hyp, :n, n] = g[:, col]
-        phi[hyp, n, n] = 1.0
-        gin[hyp, :n, col] = 0.0
-        offset[hyp, :n] = -g[:, col] * u_trim[col]
-        qa[hyp, n, n] = q_d
-        p0a[hyp, n, n] = s_d2
-        x0[hyp, n] = u_trim[col]
-        aw[hyp, n] = config.deflection_fading_weight
+        floors[hyp] = config.pair_probability_floor if len(mem) > 1 else config.probability_floor
+        for e, surface in enumerate(mem):
+            col, slot = surf_idx[surface], n + e
+            slot_surface[hyp, e] = surface
+            phi[hyp, :n, slot] = g[:, col]
+            phi[hyp, slot, slot] = 1.0
+            gin[hyp, :n, col] = 0.0
+            offset[hyp, :n] -= g[:, col] * u_trim[col]
+            qa[hyp, slot, slot] = q_d
+            p0a[hyp, slot, slot] = s_d2
+            x0[hyp, slot] = u_trim[col]
+            aw[hyp, slot] = config.deflection_fading_weight
     ha = np.zeros((h.shape[0], na))
     ha[:, :n] = h
     hqh = np.einsum("ij,hjk,ik->hi", ha, qa, ha)
@@ -497,6 +536,8 @@ def build_bank(config: StmmaeConfig) -> kern.BankArrays:
         y_trim=h @ x_trim,
         x0=x0,
         p0=p0a,
+        slot_surface=slot_surface,
+        floors=floors,
     )
     for a in arrays:
         a.setflags(write=False)
@@ -588,7 +629,8 @@ class StateParts:
 def layout(config: StmmaeConfig) -> kern.Layout:
     """The state layout of a configuration's bank."""
     nh, na = config.arrays.x0.shape
-    return kern.state_layout(nh, na, config.arrays.h.shape[0], config.arrays.gin.shape[2])
+    arr = config.arrays
+    return kern.state_layout(nh, na, arr.h.shape[0], arr.gin.shape[2], len(config.model.surfaces))
 
 
 def state_parts(config: StmmaeConfig, state: StmmaeState) -> StateParts:
@@ -617,15 +659,15 @@ def state_parts(config: StmmaeConfig, state: StmmaeState) -> StateParts:
         V_started=blocks[:, v_off + p * p],
         probabilities=vec[lay.probs : lay.probs + nh],
         u_last=vec[lay.u_last : lay.u_last + m],
-        decisions=vec[lay.decisions : lay.kind_blocks].reshape(nh - 1, kern.D_LEN),
-        kind_blocks=vec[lay.kind_blocks : lay.window].reshape(nh - 1, kern.KIND_BLOCKS),
+        decisions=vec[lay.decisions : lay.kind_blocks].reshape(lay.s, kern.D_LEN),
+        kind_blocks=vec[lay.kind_blocks : lay.window].reshape(lay.s, kern.KIND_BLOCKS),
         window=vec[lay.window : lay.window + kern.W_LEN],
     )
 
 
 def initial_state(config: StmmaeConfig) -> StmmaeState:
-    """Filters at the trim (fault filters: deflection at its trim), no-fault probability
-    ``1 - (number of surfaces) * floor``, each fault hypothesis at the floor."""
+    """Filters at the trim (fault filters: deflections at their trim), each fault hypothesis at
+    its floor, the no-fault hypothesis the rest."""
     lay = layout(config)
     arr = config.arrays
     vec = np.zeros(lay.length)
@@ -634,16 +676,16 @@ def initial_state(config: StmmaeConfig) -> StmmaeState:
         off = lay.filt + f * lay.filt_len
         vec[off : off + lay.na] = arr.x0[f]
         vec[off + lay.na : off + lay.na + lay.na * lay.na] = arr.p0[f].ravel()
-    floor = config.probability_floor
-    vec[lay.probs] = 1.0 - (lay.nh - 1) * floor
-    vec[lay.probs + 1 : lay.probs + lay.nh] = floor
+    vec[lay.probs + 1 : lay.probs + lay.nh] = arr.floors[1:]
+    vec[lay.probs] = 1.0 - float(arr.floors[1:].sum())
     vec[lay.u_last : lay.u_last + lay.m] = arr.u_trim
-    for h in range(lay.nh - 1):
+    for h in range(lay.s):
         d = lay.decisions + h * kern.D_LEN
         for idx in kern.D_TIMES:
             vec[d + idx] = np.nan
         vec[d + kern.D_BLK_IDX] = -1.0
         vec[d + kern.D_KIND_CORR] = np.nan
+        vec[d + kern.D_DEFL] = np.nan
     vec.setflags(write=False)
     return StmmaeState(version=STATE_VERSION, t_last_s=-math.inf, vector=vec)
 
@@ -668,33 +710,56 @@ _V2_D_LEN = 10  # decision fields per surface in versions 1 and 2
 
 def _upgrade_layout_v2(config: StmmaeConfig, vector: FloatArray) -> FloatArray:
     """Version 2 -> 3 (needs the configuration, so it runs at the first use of a loaded state,
-    not in :func:`load_state`): the filters, probabilities, last inputs and health-window
-    accumulators are kept; each surface's ten decision fields are kept and the new ones start
-    as a fresh state has them, except that an active fault's kind span restarts at the last
-    sample (its kind is judged ``fault_kind_window_s`` later; its episode sums are kept for the
-    stuck position) and the clearance smoothing starts from the last smoothed estimate minus
-    the last command. The kind-block history starts empty."""
+    not in :func:`load_state`). Version 2 had the no-fault and single-fault filters with one
+    deflection slot and ten decision fields per surface. Kept: every filter's x, P, V (a second
+    deflection slot, if any, starts as in a fresh filter: zero, uncorrelated), their
+    probabilities, the last inputs, the header and the health-window accumulators; each
+    surface's ten decision fields. New parts start as a fresh state has them: pair filters
+    (at their initial state, probability at the pair floor, the others scaled to sum to one),
+    the new decision fields (except that an active fault's kind span restarts at the last
+    sample, so its kind is judged ``fault_kind_window_s`` later, and the clearance smoothing
+    starts from the last smoothed estimate minus the last command), an empty kind history."""
     lay = layout(config)
-    s = lay.nh - 1
-    old_dec_end = lay.decisions + s * _V2_D_LEN
-    if vector.shape != (old_dec_end + kern.W_LEN,):
+    s = lay.s
+    n = len(config.model.states)
+    na_old, nh_old = n + 1, s + 1
+    p, m = lay.p, lay.m
+    flen_old = na_old + na_old * na_old + p * p + 1
+    probs_old = kern.ST_HEADER + nh_old * flen_old
+    dec_old = probs_old + nh_old + m
+    length_old = dec_old + s * _V2_D_LEN + kern.W_LEN
+    if vector.shape != (length_old,):
         raise EstimatorError(
             f"version-2 state of length {vector.shape[0]} does not fit this configuration "
-            f"(expected {old_dec_end + kern.W_LEN})"
+            f"(expected {length_old})"
         )
     fresh = initial_state(config).vector.copy()
-    fresh[: lay.decisions] = vector[: lay.decisions]
-    old = vector[lay.decisions : old_dec_end].reshape(s, _V2_D_LEN)
+    fresh[: kern.ST_HEADER] = vector[: kern.ST_HEADER]
+    for f in range(nh_old):
+        old = vector[kern.ST_HEADER + f * flen_old : kern.ST_HEADER + (f + 1) * flen_old]
+        off = lay.filt + f * lay.filt_len
+        fresh[off : off + na_old] = old[:na_old]
+        p_new = fresh[off + lay.na : off + lay.na + lay.na * lay.na].reshape(lay.na, lay.na)
+        p_new[:na_old, :na_old] = old[na_old : na_old + na_old * na_old].reshape(na_old, na_old)
+        v_new = off + lay.na + lay.na * lay.na
+        fresh[v_new : v_new + p * p + 1] = old[na_old + na_old * na_old :]
+    probs = fresh[lay.probs : lay.probs + lay.nh]
+    pairs_mass = float(probs[nh_old:].sum())
+    probs[:nh_old] = vector[probs_old : probs_old + nh_old] * (1.0 - pairs_mass)
+    fresh[lay.u_last : lay.u_last + m] = vector[probs_old + nh_old : dec_old]
+    old_dec = vector[dec_old : dec_old + s * _V2_D_LEN].reshape(s, _V2_D_LEN)
     dec = fresh[lay.decisions : lay.kind_blocks].reshape(s, kern.D_LEN)
-    dec[:, :_V2_D_LEN] = old
-    u_last = vector[lay.u_last : lay.u_last + lay.m]
+    dec[:, :_V2_D_LEN] = old_dec
+    u_last = fresh[lay.u_last : lay.u_last + m]
     t_prev = vector[kern.ST_T_PREV]
     for h, col in enumerate(config.surface_inputs):
-        if old[h, kern.D_SMOOTH_SET] == 1.0:
-            dec[h, kern.D_CSMOOTH] = old[h, kern.D_SMOOTH] - u_last[col]
-        if old[h, kern.D_ACTIVE] == 1.0:
+        if old_dec[h, kern.D_SMOOTH_SET] == 1.0:
+            dec[h, kern.D_CSMOOTH] = old_dec[h, kern.D_SMOOTH] - u_last[col]
+        if old_dec[h, kern.D_ACTIVE] == 1.0:
             dec[h, kern.D_KIND_T0] = t_prev
-    fresh[lay.window :] = vector[old_dec_end:]
+        dec[h, kern.D_DEFL] = vector[kern.ST_HEADER + (h + 1) * flen_old + na_old - 1]
+        dec[h, kern.D_PROB] = probs[h + 1]
+    fresh[lay.window :] = vector[length_old - kern.W_LEN :]
     fresh.setflags(write=False)
     return fresh
 
@@ -746,6 +811,17 @@ def filter_estimates(
     return [(parts.x[f].copy(), parts.P[f].copy()) for f in range(parts.x.shape[0])]
 
 
+def surface_probabilities(config: StmmaeConfig, state: StmmaeState) -> dict[str, float | None]:
+    """Each surface's marginal fault probability (the sum over the hypotheses that declare it
+    faulty) at the last sample; None before any sample."""
+    parts = state_parts(config, state)
+    if parts.samples_seen == 0.0:
+        return {s: None for s in config.model.surfaces}
+    return {
+        s: _finite(parts.decisions[h, kern.D_PROB]) for h, s in enumerate(config.model.surfaces)
+    }
+
+
 def probabilities(config: StmmaeConfig, state: StmmaeState) -> dict[str, float]:
     """Hypothesis probabilities at the last sample."""
     vals = state_parts(config, state).probabilities
@@ -759,6 +835,7 @@ def sample_output_names(config: StmmaeConfig) -> tuple[str, ...]:
         tuple(f"prob_{h}" for h in config.hypotheses)
         + tuple(f"state_{s}" for s in config.model.states)
         + tuple(f"deflection_{s}" for s in config.model.surfaces)
+        + tuple(f"fault_probability_{s}" for s in config.model.surfaces)
         + ("nis_nominal",)
     )
 
@@ -836,6 +913,8 @@ def _event(row: FloatArray, config: StmmaeConfig) -> EstimatorEvent:
         row[kern.EV_DETECTED_T],
     )
     kind = EVENT_KINDS[int(row[kern.EV_KIND])]
+    if kind == "fault_detected":
+        detail["log_likelihood_ratio"] = _finite(round(float(row[kern.EV_LLR]), 3))
     if kind == "fault_cleared":
         detail["cleared_s"] = _finite(row[kern.EV_CLEARED_T])
     return EstimatorEvent(t_s=float(row[kern.EV_T]), kind=kind, detail=detail)
@@ -844,7 +923,9 @@ def _event(row: FloatArray, config: StmmaeConfig) -> EstimatorEvent:
 def _fault_reason(f: dict[str, Any]) -> str:
     """Status reason of an active fault, from the same detail as its events."""
     if f["fault_kind"] == "stuck":
-        return f"fault: {f['component']} stuck at {f['stuck_position_deg']:.1f} deg"
+        pos = f["stuck_position_deg"]
+        where = "unknown position" if pos is None else f"{pos:.1f} deg"
+        return f"fault: {f['component']} stuck at {where}"
     if f["fault_kind"] == "oscillating":
         return f"fault: {f['component']} oscillating, swing {f['deflection_swing_deg']:.1f} deg"
     return f"fault: {f['component']} not following its command (stuck or oscillating: pending)"
@@ -859,28 +940,29 @@ def active_faults(config: StmmaeConfig, state: StmmaeState) -> list[dict[str, An
 
 
 def status_report(config: StmmaeConfig, state: StmmaeState) -> StatusReport:
-    """ "alert" while a fault is active, "watch" while a fault hypothesis is above
+    """ "alert" while a fault is active, "watch" while a surface's fault probability is above
     ``watch_probability`` without being confirmed, else "ok"."""
     faults = active_faults(config, state)
     if faults:
         return StatusReport("alert", tuple(_fault_reason(f) for f in faults))
-    probs = probabilities(config, state)
     watch = [
-        f"{h} probability {p:.2f} above {config.watch_probability:g}, not confirmed"
-        for h, p in probs.items()
-        if h != NOMINAL and p > config.watch_probability
+        f"{s} fault probability {p:.2f} above {config.watch_probability:g}, not confirmed"
+        for s, p in surface_probabilities(config, state).items()
+        if p is not None and p > config.watch_probability
     ]
     return StatusReport("watch", tuple(watch)) if watch else StatusReport("ok")
 
 
 def diagnosis(config: StmmaeConfig, state: StmmaeState) -> Diagnosis:
-    """Probabilities, active faults and deflection estimates at the last sample."""
-    x = state_parts(config, state).x
-    defl = {surface: _deg(x[h, -1]) for h, surface in enumerate(config.model.surfaces, start=1)}
+    """Probabilities (per hypothesis and per surface), active faults and deflection estimates
+    at the last sample."""
+    dec = state_parts(config, state).decisions
+    defl = {s: _deg(dec[h, kern.D_DEFL]) for h, s in enumerate(config.model.surfaces)}
     return Diagnosis(
         t_s=float(state.t_last_s),
         detail={
             "probabilities": {h: _finite(p) for h, p in probabilities(config, state).items()},
+            "surface_fault_probabilities": surface_probabilities(config, state),
             "active_faults": active_faults(config, state),
             "deflection_estimates_deg": defl,
             "variant": config.variant,

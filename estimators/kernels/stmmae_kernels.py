@@ -97,7 +97,9 @@ D_BLK_IDX = 14  # index of the block being filled (-1: none yet)
 D_BLK_SUM = 15  # sum of the estimates in that block
 D_BLK_N = 16  # their count
 D_KIND_CORR = 17  # the autocorrelation statistic the kind was judged on
-D_LEN = 18
+D_DEFL = 18  # latest deflection estimate (probability-weighted over the surface's filters), rad
+D_PROB = 19  # latest marginal fault probability of the surface
+D_LEN = 20
 D_TIMES = (D_ABOVE_T, D_ONSET_T, D_BELOW_T, D_DETECTED_T, D_KIND_T0)  # NaN when unset
 
 # health-window accumulators
@@ -135,7 +137,8 @@ EV_SWING = 6  # twice the standard deviation of the smoothed deflection over the
 EV_MEAN = 7  # mean of the smoothed deflection over the episode (rad)
 EV_FAULT_KIND = 8  # KIND_* at the time of the event
 EV_CORR = 9  # the kind test's autocorrelation statistic (NaN while pending)
-EV_LEN = 10
+EV_LLR = 10  # log-likelihood ratio summed over the detection run
+EV_LEN = 11
 EV_DETECTED = 1
 EV_CLEARED = 2
 EV_CLASSIFIED = 3
@@ -165,6 +168,10 @@ class BankArrays(NamedTuple):
         euclid_weights: (p,) ``1 / R_jj``, the units of the Euclidean-norm likelihood.
         x_trim: (n,) trim state; u_trim: (m,) trim inputs; y_trim: (p,) ``H x*``.
         x0: (nh, na) initial states; p0: (nh, na, na) initial covariances.
+        slot_surface: (nh, na - n) int64: the surface (index among the monitored surfaces)
+            whose deflection each augmented state slot of a filter holds, -1 for none (the
+            no-fault filter has none, a single-fault filter one, a pair filter two).
+        floors: (nh,) probability floor of each hypothesis.
     """
 
     phi: FloatArray
@@ -191,6 +198,8 @@ class BankArrays(NamedTuple):
     y_trim: FloatArray
     x0: FloatArray
     p0: FloatArray
+    slot_surface: IntArray
+    floors: FloatArray
 
 
 class Layout(NamedTuple):
@@ -200,27 +209,40 @@ class Layout(NamedTuple):
     na: int
     p: int
     m: int
+    s: int  # monitored surfaces
     filt: int  # start of the first filter block
     filt_len: int  # length of one filter block: na + na*na + p*p + 1
     probs: int
     u_last: int
     decisions: int
-    kind_blocks: int  # (nh - 1, KIND_BLOCKS) block means of the deflection estimate (rad)
+    kind_blocks: int  # (s, KIND_BLOCKS) block means of the deflection estimate (rad)
     window: int
     length: int
 
 
-def state_layout(nh: int, na: int, p: int, m: int) -> Layout:
-    """The state-vector layout of a bank."""
+def state_layout(nh: int, na: int, p: int, m: int, s: int) -> Layout:
+    """The state-vector layout of a bank of ``nh`` filters over ``s`` surfaces."""
     filt_len = na + na * na + p * p + 1
     filt = ST_HEADER
     probs = filt + nh * filt_len
     u_last = probs + nh
     decisions = u_last + m
-    kind_blocks = decisions + (nh - 1) * D_LEN
-    window = kind_blocks + (nh - 1) * KIND_BLOCKS
+    kind_blocks = decisions + s * D_LEN
+    window = kind_blocks + s * KIND_BLOCKS
     return Layout(
-        nh, na, p, m, filt, filt_len, probs, u_last, decisions, kind_blocks, window, window + W_LEN
+        nh,
+        na,
+        p,
+        m,
+        s,
+        filt,
+        filt_len,
+        probs,
+        u_last,
+        decisions,
+        kind_blocks,
+        window,
+        window + W_LEN,
     )
 
 
@@ -313,6 +335,8 @@ def filter_step(
     work: FloatArray,
     mats: FloatArray,
     out2: FloatArray,
+    qx: FloatArray,
+    n_qx: int,
 ) -> int:
     """Advance filter ``f`` (its rows of ``xs`` (nh, na), ``ps`` (nh, na, na), ``vs``
     (nh, p, p), ``vflags`` (nh,)) by one sample; returns 0, or 1 when S was not positive
@@ -418,6 +442,14 @@ def filter_step(
         for i in range(na):
             for j in range(na):
                 pp[i, j] = amat[i, j] + bank.q[f, i, j]
+    # rebased inputs: each input taken at an estimate adds g g^T var to the prior covariance
+    # (``qx`` rows hold g sqrt(var) of the first ``n_qx`` such inputs)
+    for e in range(n_qx):
+        for i in range(na):
+            v = qx[e, i]
+            if v != 0.0:
+                for j in range(na):
+                    pp[i, j] += v * qx[e, j]
     if nv == 0:
         _accept_prior(f, xs, ps, xp, pp)
         out2[0] = 0.0
@@ -517,7 +549,7 @@ def _accept_prior(f: int, xs: FloatArray, ps: FloatArray, xp: FloatArray, pp: Fl
 
 # ----------------------------------------------------------------------------- bank
 @njit(cache=True, error_model="numpy")
-def _bayes(probs: FloatArray, ll: FloatArray, floor: float) -> None:
+def _bayes(probs: FloatArray, ll: FloatArray, floors: FloatArray) -> None:
     """``p_i <- p_i f_i / sum_j p_j f_j`` in the log domain, then the floor and renormalization.
     Hypotheses whose likelihood is not finite get zero weight (then the floor); if none is
     finite the probabilities are left unchanged."""
@@ -541,8 +573,8 @@ def _bayes(probs: FloatArray, ll: FloatArray, floor: float) -> None:
     total2 = 0.0
     for i in range(nh):
         v = probs[i] / total
-        if v < floor:
-            v = floor
+        if v < floors[i]:
+            v = floors[i]
         probs[i] = v
         total2 += v
     for i in range(nh):
@@ -601,6 +633,7 @@ def _write_event(
     row[EV_MEAN] = episode_mean(dec, h)
     row[EV_FAULT_KIND] = dec[h, D_KIND]
     row[EV_CORR] = dec[h, D_KIND_CORR]
+    row[EV_LLR] = dec[h, D_LLR]
     return events
 
 
@@ -723,10 +756,10 @@ def _decide(
     Detection needs, held together for ``CFG_HOLD_S``: the probability above ``CFG_DETECT_P``,
     the smoothed deflection estimate more than ``CFG_MIN_ERR`` from the command, and at the end
     the log-likelihood ratio against the no-fault filter summed over the run at least
-    ``CFG_MIN_LLR``. Clearance (hysteresis): with the rebased bank, the smoothed difference
-    between deflection estimate and command inside ``CFG_CLEAR_DEFL`` for ``CFG_CLEAR_HOLD_S``
-    (the surface follows its command again); without it, the probability below ``CFG_CLEAR_P``
-    for ``CFG_CLEAR_HOLD_S``."""
+    ``CFG_MIN_LLR``. Clearance (hysteresis): the smoothed difference between deflection estimate
+    and command inside ``CFG_CLEAR_DEFL`` (the surface follows its command again) and, unless
+    the bank is rebased (the probability then no longer compares with the command), the
+    probability below ``CFG_CLEAR_P``, together for ``CFG_CLEAR_HOLD_S``."""
     lim = cfg[CFG_LIMIT]
     defl = min(max(defl, -lim), lim)
     if dec[h, D_SMOOTH_SET] == 0.0 or not dt > 0.0:
@@ -766,10 +799,9 @@ def _decide(
             _judge_kind(cfg, dec, kbuf, h)
             dec[h, D_BLK_IDX] = KIND_BLOCKS  # span closed
             code = EV_CLASSIFIED
-    if cfg[CFG_REBASE] != 0.0:
-        back = abs(dec[h, D_CSMOOTH]) < cfg[CFG_CLEAR_DEFL]
-    else:
-        back = prob < cfg[CFG_CLEAR_P]
+    back = abs(dec[h, D_CSMOOTH]) < cfg[CFG_CLEAR_DEFL]
+    if cfg[CFG_REBASE] == 0.0:
+        back = back and prob < cfg[CFG_CLEAR_P]
     if back:
         if math.isnan(dec[h, D_BELOW_T]):
             dec[h, D_BELOW_T] = t
@@ -835,17 +867,19 @@ def bank_batch(
         t: sample times, shape (k,).
         y: measurements, shape (p, k); NaN = missing.
         u: inputs (commands), shape (m, k); NaN = hold the last valid value.
-        surface_inputs: input index of each monitored surface, shape (nh - 1,).
+        surface_inputs: input index of each monitored surface, shape (s,).
 
     Returns:
-        ``(samples, windows, events, status)``: ``samples`` is (nh + n + (nh - 1) + 1, k):
-        probabilities, blended states, deflection estimates, NIS of the no-fault filter;
+        ``(samples, windows, events, status)``: ``samples`` is (nh + n + 2 s + 1, k):
+        hypothesis probabilities, blended states, deflection estimates, marginal fault
+        probabilities of the surfaces, NIS of the no-fault filter;
         ``windows``/``events`` are row arrays (``WIN_LEN``/``EV_LEN`` columns); ``status`` is 0,
         or -1 when the times are not strictly increasing (``st`` is then left untouched).
     """
     nh, na = arrays.x0.shape
-    n = na - 1
-    samples = np.empty((nh + n + (nh - 1) + 1, t.shape[0]))
+    n = na - arrays.slot_surface.shape[1]
+    ns = surface_inputs.shape[0]
+    samples = np.empty((nh + n + 2 * ns + 1, t.shape[0]))
     windows, events, status = _bank_kernel(cfg, arrays, st, t, y, u, surface_inputs, samples)
     return samples, windows, events, status
 
@@ -909,7 +943,7 @@ def _bank_kernel(
     """The compiled loop of :func:`bank_batch`."""
     k_len = t.shape[0]
     nh, na = bank.offset.shape
-    n = na - 1
+    n = na - bank.slot_surface.shape[1]
     p = bank.r.shape[0]
     m = u.shape[0]
     for k in range(1, k_len):
@@ -919,8 +953,10 @@ def _bank_kernel(
     lay_probs = ST_HEADER + nh * flen
     lay_u = lay_probs + nh
     lay_dec = lay_u + m
-    lay_kind = lay_dec + (nh - 1) * D_LEN
-    lay_win = lay_kind + (nh - 1) * KIND_BLOCKS
+    ns = surface_inputs.shape[0]
+    n_slots = bank.slot_surface.shape[1]
+    lay_kind = lay_dec + ns * D_LEN
+    lay_win = lay_kind + ns * KIND_BLOCKS
     hw = cfg[CFG_WINDOW]
     windows = np.empty((int(k_len // hw) + 1, WIN_LEN))
     events = np.empty((8, EV_LEN))
@@ -931,10 +967,19 @@ def _bank_kernel(
     rho = cfg[CFG_RHO]
     beta = cfg[CFG_BETA]
     xs, ps, vs, vflags = _unpack(st, nh, na, p)
-    dec = st[lay_dec : lay_dec + (nh - 1) * D_LEN].copy().reshape((nh - 1, D_LEN))
-    kbuf = st[lay_kind:lay_win].copy().reshape((nh - 1, KIND_BLOCKS))
+    dec = st[lay_dec : lay_dec + ns * D_LEN].copy().reshape((ns, D_LEN))
+    kbuf = st[lay_kind:lay_win].copy().reshape((ns, KIND_BLOCKS))
     rebase = cfg[CFG_REBASE] != 0.0
     du_f = np.empty(m)
+    qx = np.zeros((max(ns, 1), na))
+    # per surface: marginal probability, weighted deflection and variance, best log-likelihood
+    # of the filters holding it and of those not holding it
+    pm = np.empty(ns)
+    dsum = np.empty(ns)
+    vsum = np.empty(ns)
+    ll_in = np.empty(ns)
+    ll_out = np.empty(ns)
+    best_in = np.full(ns, -1, dtype=np.int64)
     probs = st[lay_probs : lay_probs + nh]
     u_last = st[lay_u : lay_u + m]
     wacc = st[lay_win : lay_win + W_LEN]
@@ -967,11 +1012,23 @@ def _bank_kernel(
             # filter's estimate (previous posterior), not at its command
             for j in range(m):
                 du_f[j] = du[j]
+            n_qx = 0
             if rebase:
-                for g in range(nh - 1):
-                    if dec[g, D_ACTIVE] == 1.0 and g + 1 != f:
-                        col = surface_inputs[g]
-                        du_f[col] = dec[g, D_SMOOTH] - bank.u_trim[col]
+                for g in range(ns):
+                    if dec[g, D_ACTIVE] != 1.0:
+                        continue
+                    own = False
+                    for e in range(n_slots):
+                        if bank.slot_surface[f, e] == g:
+                            own = True
+                    if own:
+                        continue
+                    col = surface_inputs[g]
+                    du_f[col] = dec[g, D_SMOOTH] - bank.u_trim[col]
+                    sd = math.sqrt(max(ps[best_in[g], n, n], 0.0)) if best_in[g] >= 0 else 0.0
+                    for i in range(n):
+                        qx[n_qx, i] = bank.gin[0, i, col] * sd
+                    n_qx += 1
             fails += filter_step(
                 f,
                 bank,
@@ -990,13 +1047,15 @@ def _bank_kernel(
                 work,
                 mats,
                 out2,
+                qx,
+                n_qx,
             )
             ll[f] = out2[0] if not math.isnan(out2[0]) else -np.inf
             if f == 0:
                 nis0 = out2[1] / nv if nv > 0 else np.nan
         st[ST_COV_FAIL] += fails
         if nv > 0:
-            _bayes(probs, ll, cfg[CFG_FLOOR])
+            _bayes(probs, ll, bank.floors)
         # per-sample outputs
         row = 0
         for f in range(nh):
@@ -1014,12 +1073,37 @@ def _bank_kernel(
         any_active = False
         max_fault = -1.0
         max_hyp = 0
-        for h in range(nh - 1):
-            defl = xs[h + 1, n]
+        for g in range(ns):
+            pm[g] = 0.0
+            dsum[g] = 0.0
+            vsum[g] = 0.0
+            ll_in[g] = -np.inf
+            ll_out[g] = -np.inf
+            best_in[g] = -1
+        for f in range(nh):
+            for g in range(ns):
+                slot = -1
+                for e in range(n_slots):
+                    if bank.slot_surface[f, e] == g:
+                        slot = n + e
+                if slot >= 0:
+                    pm[g] += probs[f]
+                    dsum[g] += probs[f] * xs[f, slot]
+                    vsum[g] += probs[f] * ps[f, slot, slot]
+                    if ll[f] > ll_in[g] or best_in[g] < 0:
+                        ll_in[g] = ll[f]
+                        best_in[g] = f
+                elif ll[f] > ll_out[g]:
+                    ll_out[g] = ll[f]
+        for h in range(ns):
+            defl = dsum[h] / pm[h]
             samples[row, k] = defl
+            samples[row + ns, k] = pm[h]
             row += 1
+            dec[h, D_DEFL] = defl
+            dec[h, D_PROB] = pm[h]
             cmd = u_last[surface_inputs[h]]
-            llr = ll[h + 1] - ll[0] if nv > 0 else 0.0
+            llr = ll_in[h] - ll[0] if nv > 0 else 0.0
             code = _decide(
                 cfg,
                 dec,
@@ -1027,9 +1111,9 @@ def _bank_kernel(
                 h,
                 tk,
                 dt,
-                probs[h + 1],
+                pm[h],
                 defl,
-                ps[h + 1, n, n],
+                vsum[h] / pm[h],
                 cmd,
                 a_smooth,
                 a_clear,
@@ -1042,9 +1126,10 @@ def _bank_kernel(
                     reset_after_clearance(dec, h)
             if dec[h, D_ACTIVE] == 1.0:
                 any_active = True
-            if probs[h + 1] > max_fault:
-                max_fault = probs[h + 1]
+            if pm[h] > max_fault:
+                max_fault = pm[h]
                 max_hyp = h + 1
+        row += ns
         samples[row, k] = nis0
         # health window
         if wacc[W_COUNT] == 0.0:
@@ -1067,6 +1152,6 @@ def _bank_kernel(
         st[ST_T_PREV] = tk
         st[ST_N_SEEN] += 1.0
     _pack(st, xs, ps, vs, vflags)
-    st[lay_dec : lay_dec + (nh - 1) * D_LEN] = dec.ravel()
+    st[lay_dec : lay_dec + ns * D_LEN] = dec.ravel()
     st[lay_kind:lay_win] = kbuf.ravel()
     return windows[:n_win].copy(), events[:n_ev].copy(), 0

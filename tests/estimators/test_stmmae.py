@@ -74,7 +74,7 @@ def filterpy_bank(config):
 
 
 def bayes(probs, loglik, floor):
-    """The seed's recursion with the floor, in plain numpy."""
+    """The seed's recursion with the floor (one per hypothesis), in plain numpy."""
     w = probs * np.exp(loglik - loglik.max())
     w = w / w.sum()
     w = np.maximum(w, floor)
@@ -127,7 +127,7 @@ def test_emmae_bank_matches_filterpy_and_the_bayes_recursion(flight) -> None:
             kf.update(y)
             # log-likelihood from the innovation and S (filterpy#260: not from update())
             loglik[f] = logpdf(kf.y, cov=kf.S)
-        probs = bayes(probs, loglik, config.probability_floor)
+        probs = bayes(probs, loglik, config.arrays.floors)
         if k % 50 == 0 or 795 <= k <= 830:
             for (x, pm), kf in zip(state_slices(config, state), bank, strict=True):
                 # same equations, different association (Joseph form in filterpy):
@@ -167,10 +167,7 @@ def test_strong_tracking_matches_a_numpy_reference(flight, variant) -> None:
             )
             for f, (x, pm) in enumerate(state_slices(config, state)):
                 xs[f], ps[f] = x, pm
-            lay = stmmae.layout(config)
-            for f in range(nh):
-                off = lay.filt + f * lay.filt_len + lay.na + lay.na * lay.na
-                vs[f] = state.vector[off : off + lay.p * lay.p].reshape(lay.p, lay.p).copy()
+            vs[:] = stmmae.state_parts(config, state).V
         state, _ = stmmae.step(config, state, batch)
         y, u = measured(config, ch, k)
         for f in range(nh):
@@ -219,15 +216,28 @@ def test_probability_floor_and_normalization(flight) -> None:
     _, s, _, _, _ = run(config, t, ch)
     probs = np.array([s[f"prob_{h}"] for h in config.hypotheses])
     np.testing.assert_allclose(probs.sum(axis=0), 1.0, rtol=1e-12)
-    # floored then renormalized: never below floor / (1 + (number of hypotheses) * floor)
-    assert probs.min() >= config.probability_floor / (1 + 6 * config.probability_floor) - 1e-15
+    # floored then renormalized: never below floor / (1 + sum of the floors)
+    floors = config.arrays.floors
+    assert np.all(probs.min(axis=1) >= floors / (1 + floors.sum()) - 1e-15)
+    # a surface's fault probability is the sum over the hypotheses that declare it faulty
+    for i, surface in enumerate(config.model.surfaces):
+        members = [
+            h for h, mem in zip(config.hypotheses, stmmae.hypothesis_members(config)) if i in mem
+        ]
+        assert len(members) == len(SURFACES)  # its single filter and four pairs
+        np.testing.assert_allclose(
+            s[f"fault_probability_{surface}"], sum(s[f"prob_{h}"] for h in members), rtol=1e-12
+        )
 
 
 # ----------------------------------------------------------------------------- simulator truth
 @pytest.mark.parametrize("variant", ["improved", "emmae"])
 def test_isolates_a_stuck_aileron_against_truth(flight, variant) -> None:
     t, ch, truth = flight
-    config = stmmae.parse_config({"variant": variant, "health_window_samples": 100})
+    # the plain Kalman bank as the seed ran it: one filter per surface, no pair hypotheses
+    pairs = variant != "emmae"
+    raw = {"variant": variant, "health_window_samples": 100, "pair_hypotheses": pairs}
+    config = stmmae.parse_config(raw)
     _, s, health, events, out = run(config, t, ch)
     detected = [e for e in events if e.kind == "fault_detected"]
     assert detected, "no detection"
@@ -460,12 +470,14 @@ def test_covariance_stays_symmetric_positive_definite(variant) -> None:
         channels |= {inp.channel: u[:, i] for i, inp in enumerate(config.model.inputs)}
         state, out = stmmae.step(config, state, Batch(t, channels))
         assert all(h.indicators["covariance_failures"] == 0.0 for h in out.health)
-        for _, pm in state_slices(config, state):
+        n = len(config.model.states)
+        for (_, pm), slots in zip(state_slices(config, state), config.arrays.slot_surface):
             assert np.array_equal(pm, pm.T)
-            low = np.linalg.eigvalsh(pm)
-            assert low[1] > 0.0  # index 0 is the no-fault filter's unused state (exact zero)
+            used = n + int(np.sum(slots >= 0))  # unused deflection slots stay exactly zero
+            assert np.all(pm[used:] == 0.0)
+            assert np.linalg.eigvalsh(pm[:used, :used])[0] > 0.0
             assert np.all(np.isfinite(pm))
-    assert state.vector[1] == 0.0  # ST_COV_FAIL: no non-positive-definite S over the run
+    assert stmmae.state_parts(config, state).covariance_failures == 0.0  # S always PD
 
 
 # ----------------------------------------------------------------------------- configuration
@@ -476,7 +488,10 @@ def test_config_defaults_round_trip() -> None:
     assert d["variant"] == "improved" and d["likelihood"] == "gaussian"
     assert d["weakening_factor"] == "auto"
     assert stmmae.parse_config(d) == config
-    assert config.hypotheses == ("nominal", *SURFACES)
+    assert config.hypotheses[:6] == ("nominal", *SURFACES)
+    assert len(config.hypotheses) == 16 and "aileron_left+rudder" in config.hypotheses
+    single = stmmae.parse_config({"pair_hypotheses": False})
+    assert single.hypotheses == ("nominal", *SURFACES)
     assert stmmae.required_channels(config)[:6] == ("p", "q", "r", "alpha", "beta", "airspeed")
     custom = stmmae.parse_config(
         {"variant": "emmae", "likelihood": "euclidean", "hold_s": 0.3, "weakening_factor": 2.0}
@@ -607,5 +622,5 @@ def test_config_model_schema_and_named_state_parts() -> None:
     parts = stmmae.state_parts(config, stmmae.initial_state(config))
     nh, na = config.arrays.x0.shape
     assert parts.x.shape == (nh, na) and parts.P.shape == (nh, na, na)
-    assert parts.decisions.shape == (nh - 1, kern.D_LEN)
+    assert parts.decisions.shape == (len(SURFACES), kern.D_LEN)
     assert not parts.x.flags.writeable
