@@ -222,7 +222,9 @@ def test_probability_floor_and_normalization(flight) -> None:
     # a surface's fault probability is the sum over the hypotheses that declare it faulty
     for i, surface in enumerate(config.model.surfaces):
         members = [
-            h for h, mem in zip(config.hypotheses, stmmae.hypothesis_members(config)) if i in mem
+            h
+            for h, mem in zip(config.hypotheses, stmmae.hypothesis_members(config), strict=True)
+            if i in mem
         ]
         assert len(members) == len(SURFACES)  # its single filter and four pairs
         np.testing.assert_allclose(
@@ -471,7 +473,9 @@ def test_covariance_stays_symmetric_positive_definite(variant) -> None:
         state, out = stmmae.step(config, state, Batch(t, channels))
         assert all(h.indicators["covariance_failures"] == 0.0 for h in out.health)
         n = len(config.model.states)
-        for (_, pm), slots in zip(state_slices(config, state), config.arrays.slot_surface):
+        for (_, pm), slots in zip(
+            state_slices(config, state), config.arrays.slot_surface, strict=True
+        ):
             assert np.array_equal(pm, pm.T)
             used = n + int(np.sum(slots >= 0))  # unused deflection slots stay exactly zero
             assert np.all(pm[used:] == 0.0)
