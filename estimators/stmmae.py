@@ -248,7 +248,7 @@ class StmmaeConfig(EstimatorConfigModel):
         "surface's marginal fault probability",
     )
     pair_probability_floor: Number = Field(
-        0.0001,
+        1e-6,
         gt=0.0,
         le=0.01,
         description="probability floor of each pair hypothesis (a double fault is rarer)",
@@ -274,7 +274,7 @@ class StmmaeConfig(EstimatorConfigModel):
         description="time constant of the smoothed deflection error of the clearance test, s",
     )
     oscillation_correlation: Number = Field(
-        -0.45,
+        -0.38,
         gt=-1.0,
         lt=0.0,
         description="a fault is oscillating when the autocorrelation of its deflection history "

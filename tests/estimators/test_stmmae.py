@@ -628,3 +628,160 @@ def test_config_model_schema_and_named_state_parts() -> None:
     assert parts.x.shape == (nh, na) and parts.P.shape == (nh, na, na)
     assert parts.decisions.shape == (len(SURFACES), kern.D_LEN)
     assert not parts.x.flags.writeable
+
+
+# ----------------------------------------------------------------------------- decision logic
+def _decide_run(config, probs, defl_deg, cmd_deg, llrs, dt=0.01):
+    """Feed one surface's decision logic a sequence of (probability, deflection, command,
+    log-likelihood ratio) samples; return the codes raised and the decision fields."""
+    cfg = config.kernel_vector
+    dec = np.zeros((1, kern.D_LEN))
+    for idx in kern.D_TIMES:
+        dec[0, idx] = np.nan
+    dec[0, kern.D_BLK_IDX] = -1.0
+    kbuf = np.zeros((1, kern.KIND_BLOCKS))
+    a_s = 1.0 - math.exp(-dt / config.deflection_smoothing_s)
+    a_c = 1.0 - math.exp(-dt / config.clear_smoothing_s)
+    codes = []
+    for k, (p, d, c, llr) in enumerate(zip(probs, defl_deg, cmd_deg, llrs, strict=True)):
+        code = kern._decide(
+            cfg,
+            dec,
+            kbuf,
+            0,
+            k * dt,
+            dt if k else 0.0,
+            p,
+            math.radians(d),
+            1e-4,
+            math.radians(c),
+            a_s,
+            a_c,
+            llr,
+        )
+        if code:
+            codes.append((round(k * dt, 2), code))
+        if code == kern.EV_CLEARED:
+            kern.reset_after_clearance(dec, 0)
+    return codes, dec
+
+
+def test_detection_needs_likelihood_ratio_evidence_over_the_hold() -> None:
+    """Probability above the level and the deflection off its command for the hold time are
+    not enough: the log-likelihood ratio summed over the run must reach its level too."""
+    config = stmmae.parse_config({})
+    n = 100
+    probs, defl, cmd = [0.95] * n, [6.0] * n, [0.0] * n
+    weak = [0.01] * n  # 0.01 nat per sample: 1 nat over 1 s, below the 2-nat level
+    codes, _ = _decide_run(config, probs, defl, cmd, weak)
+    assert codes == []
+    codes, _ = _decide_run(config, probs, defl, cmd, [0.5] * n)  # 0.5 nat per sample
+    assert codes[0] == (config.hold_s, kern.EV_DETECTED)
+    no_gate = stmmae.parse_config({"min_log_likelihood_ratio": 0.0})
+    codes, _ = _decide_run(no_gate, probs, defl, cmd, weak)
+    assert codes and codes[0][1] == kern.EV_DETECTED
+    # and the deflection gate: a surface at its command is not in fault, whatever the odds
+    codes, _ = _decide_run(config, probs, [0.2] * n, cmd, [0.5] * n)
+    assert codes == []
+
+
+def test_clearance_hysteresis_keeps_a_fault_through_short_dips() -> None:
+    """A fault whose probability dips below the clearance level for 0.3 s while the surface
+    estimate stays off its command is not cleared (it was, with the former 0.1 s probability-only
+    rule); it is cleared once the surface follows its command with a low probability for the
+    clearance hold."""
+    config = stmmae.parse_config({})
+    rise = [(0.95, 8.0, 0.0, 1.0)] * 50
+    dip = [(0.01, 8.0, 0.0, -1.0)] * 30
+    back = [(0.95, 8.0, 0.0, 1.0)] * 50
+    healthy = [(0.01, 0.3, 0.0, -1.0)] * 300
+    seq = rise + dip + back + dip + back
+    codes, dec = _decide_run(config, *zip(*seq, strict=True))
+    assert [c for _, c in codes] == [kern.EV_DETECTED]
+    assert dec[0, kern.D_ACTIVE] == 1.0
+    old = stmmae.parse_config({"clear_hold_s": 0.1, "clear_deflection_deg": 90.0})
+    codes, _ = _decide_run(old, *zip(*seq, strict=True))
+    assert [c for _, c in codes].count(kern.EV_DETECTED) == 3  # cleared and re-detected twice
+    codes, _ = _decide_run(config, *zip(*(seq + healthy), strict=True))
+    assert [c for _, c in codes] == [kern.EV_DETECTED, kern.EV_CLEARED]
+    # cleared 1 s (clear hold) plus the smoothing of the deflection error after the fault ends
+    t_end = len(seq) * 0.01
+    assert t_end + config.clear_hold_s < codes[1][0] < t_end + config.clear_hold_s + 1.5
+
+
+def test_kind_correlation_separates_oscillation_from_noise_and_drift() -> None:
+    """The autocorrelation statistic: -1 at half the period of a sine or square wave; a constant
+    seen through noise and a slow drift stays above the oscillation level."""
+    block = kern.KIND_BLOCK_S
+    t = np.arange(100) * block  # 5 s of 0.05 s blocks
+    rng = np.random.default_rng(3)
+    level = stmmae.parse_config({}).oscillation_correlation
+    for period in (0.6, 1.5, 4.0):
+        sine = np.sin(2 * np.pi * t / period) + 0.3 * rng.standard_normal(t.size)
+        square = np.sign(np.sin(2 * np.pi * t / period + 0.1))
+        assert kern.kind_correlation(sine, t.size) < -0.6, period
+        assert kern.kind_correlation(square, t.size) < -0.6, period
+    for seed in range(20):
+        r = np.random.default_rng(seed)
+        noise = r.standard_normal(t.size) + 0.2 * t  # white noise plus a drift
+        assert kern.kind_correlation(noise, t.size) > level, seed
+    assert math.isnan(kern.kind_correlation(np.ones(50), 50))  # flat: no variance
+    assert math.isnan(kern.kind_correlation(t, kern.KIND_MIN_BLOCKS - 1))  # too short
+
+
+ELEVATOR_FAULTS = {
+    "stuck": SurfaceFault("elevator_left", 4.0, 30.0, "stuck", position_deg=-14.0),
+    "oscillating": SurfaceFault(
+        "elevator_right", 4.0, 30.0, "square", center_deg=-6.0, amplitude_deg=3.0, period_s=1.5
+    ),
+}
+
+
+@pytest.mark.parametrize("kind", ["stuck", "oscillating"])
+def test_elevator_fault_kind_and_status_reason_agree(kind) -> None:
+    """A stuck elevator is reported stuck (the former swing rule called it oscillating) and an
+    oscillating one oscillating; the detection event says pending, the classification event
+    gives the kind, and the status reason, the diagnosis and the clearance event say the same."""
+    fault = ELEVATOR_FAULTS[kind]
+    t, ch, _ = simulate_flight(12.0, faults=(fault,), seed=21)
+    config = stmmae.parse_config({})
+    state, s, _, events, out = run(config, t, ch)
+    mine = [e for e in events if e.detail["component"] == fault.surface]
+    assert [e.kind for e in mine[:2]] == ["fault_detected", "fault_classified"]
+    assert mine[0].detail["fault_kind"] == "pending"
+    assert mine[0].detail["log_likelihood_ratio"] >= config.min_log_likelihood_ratio
+    assert mine[1].detail["fault_kind"] == kind
+    active = {f["component"]: f for f in stmmae.active_faults(config, state)}
+    assert active[fault.surface]["fault_kind"] == kind
+    reason = next(r for r in out.status.reasons if fault.surface in r)
+    if kind == "stuck":
+        assert f"stuck at {fault.position_deg:.0f}" in reason or "stuck at -13" in reason
+        assert mine[1].detail["stuck_position_deg"] == pytest.approx(fault.position_deg, abs=1.5)
+    else:
+        assert "oscillating" in reason and "stuck" not in reason
+    # the classification comes fault_kind_window_s after the start of the detection hold
+    assert mine[1].t_s == pytest.approx(
+        mine[0].t_s - config.hold_s + config.fault_kind_window_s, abs=0.05
+    )
+
+
+def test_second_fault_while_one_is_active_is_isolated_by_pair_hypotheses() -> None:
+    """The right elevator sticks while the rudder is stuck: with pair hypotheses both are found
+    and kept; the seed's bank of single-surface filters does not find the second within the
+    flight (no filter explains two faults)."""
+    faults = (
+        SurfaceFault("rudder", 3.0, 30.0, "stuck", position_deg=7.7),
+        SurfaceFault("elevator_right", 7.0, 30.0, "stuck", position_deg=-13.0),
+    )
+    t, ch, _ = simulate_flight(16.0, faults=faults, seed=5)
+    config = stmmae.parse_config({})
+    state, _, _, events, _ = run(config, t, ch)
+    det = {e.detail["component"]: e.t_s for e in events if e.kind == "fault_detected"}
+    assert set(det) == {"rudder", "elevator_right"}
+    assert 3.0 < det["rudder"] < 3.5 and 7.0 < det["elevator_right"] < 11.0
+    assert {f["component"] for f in stmmae.active_faults(config, state)} == set(det)
+    assert not [e for e in events if e.kind == "fault_cleared"]
+    single = stmmae.parse_config({"pair_hypotheses": False})
+    _, _, _, events1, _ = run(single, t, ch)
+    det1 = [e.detail["component"] for e in events1 if e.kind == "fault_detected"]
+    assert det1 == ["rudder"]
