@@ -234,7 +234,7 @@ class StmmaeConfig(EstimatorConfigModel):
         description="clearance hold time, s: the clearance condition must hold this long",
     )
     min_log_likelihood_ratio: Number = Field(
-        2.0,
+        6.0,
         ge=0.0,
         le=1e6,
         description="smallest log-likelihood ratio of the fault filter against the no-fault "
