@@ -73,7 +73,9 @@ def main() -> None:
     per_sample: dict[str, float] = {}
     for variant in ("improved", "strong_tracking", "emmae"):
         for likelihood in ("gaussian", "euclidean"):
-            config = stmmae.parse_config({"variant": variant, "likelihood": likelihood})
+            config = stmmae.parse_config(
+                {"variant": variant, "likelihood": likelihood, "pair_hypotheses": False}
+            )
             state0 = stmmae.initial_state(config)
             secs = best_of(lambda c=config, s=state0: stmmae.step(c, s, batch), 5) / n
             per_sample[f"{variant}/{likelihood}"] = secs
@@ -81,7 +83,17 @@ def main() -> None:
                 (f"bank of 6 ({variant}, {likelihood}), {n}-sample batch", f"{secs * 1e9:9.0f} ns")
             )
 
-    config = stmmae.parse_config({"variant": "emmae", "likelihood": "gaussian"})
+    config = stmmae.parse_config({})
+    state0 = stmmae.initial_state(config)
+    secs = best_of(lambda: stmmae.step(config, state0, batch), 5) / n
+    per_sample["default"] = secs
+    rows.append(
+        (f"default bank of 16 (pair hypotheses), {n}-sample batch", f"{secs * 1e9:9.0f} ns")
+    )
+
+    config = stmmae.parse_config(
+        {"variant": "emmae", "likelihood": "gaussian", "pair_hypotheses": False}
+    )
     y = np.column_stack([ch[m.channel] for m in config.model.measurements]) - config.arrays.y_trim
     u = np.column_stack([ch[i.channel] for i in config.model.inputs]) - config.arrays.u_trim
     u1 = np.column_stack([u, np.ones(n)])
@@ -139,7 +151,10 @@ def main() -> None:
     for name, value in rows:
         print(f"{name:<{width}}  {value}")
     print()
-    print("Goal: under 15 us per sample for the whole bank (default: improved, gaussian).")
+    print(
+        "Goal: under 15 us per sample for the seed's bank of 6 (improved, gaussian); the default "
+        "bank of 16 with pair hypotheses costs more."
+    )
     print(
         "Note: filterpy's MMAEFilterBank.update zips the mixed state vector with the filters, "
         "so filter i's spread term uses the i-th component of the mixed state instead of the "

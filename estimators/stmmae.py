@@ -19,36 +19,42 @@ Equations, choices where the seed is silent and the configuration reference:
 
 from __future__ import annotations
 
+import json
 import math
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, fields
-from typing import Any, Literal
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from functools import cached_property
+from typing import Annotated, Any, Literal
 
 import numpy as np
+from pydantic import Field, ValidationError, field_validator, model_validator
 
 from estimators.base import (
     Batch,
     ConfigError,
     Diagnosis,
+    EstimatorConfigModel,
     EstimatorError,
     EstimatorEvent,
     FloatArray,
     HealthWindow,
     OutOfOrderError,
+    StateVersionError,
     Status,
     StatusReport,
     StepOutputs,
+    config_error,
     dump_vector_state,
     load_vector_state,
 )
 from estimators.checks import channel_block
 from estimators.checks import finite_or_none as _finite
-from estimators.checks import is_number as _is_number
 from estimators.kernels import stmmae_kernels as kern
+from estimators.kernels.stmmae_kernels import IntArray
 from estimators.models.small_uav import reference_model
 
 NAME = "stmmae"
-STATE_VERSION = 2
+STATE_VERSION = 3
 
 Variant = Literal["improved", "strong_tracking", "emmae"]
 Likelihood = Literal["euclidean", "gaussian"]
@@ -66,45 +72,85 @@ MATRIX_KEYS = ("F", "G", "H", "Q", "R", "P0")
 
 
 # ----------------------------------------------------------------------------- configuration
-@dataclass(frozen=True)
-class ModelInput:
+Number = Annotated[float, Field(strict=True, allow_inf_nan=False)]
+"""A finite JSON number (an integer is accepted; a boolean or a string is not)."""
+Matrix = tuple[tuple[Number, ...], ...]
+
+
+class ModelInput(EstimatorConfigModel):
     """One model input: a monitored surface (rad) or a known, unmonitored input."""
 
-    name: str
-    channel: str
-    surface: bool
+    name: str = Field(min_length=1, description="input name; a surface's name names its hypothesis")
+    channel: str = Field(min_length=1, description="stream channel carrying the command")
+    surface: bool = Field(
+        True,
+        strict=True,
+        description="true: a monitored control surface (rad, gets a fault hypothesis); "
+        "false: a known input (e.g. throttle) the model needs",
+    )
 
 
-@dataclass(frozen=True)
-class ModelMeasurement:
+class ModelMeasurement(EstimatorConfigModel):
     """One measured model output and the channel carrying it."""
 
-    name: str
-    channel: str
+    name: str = Field(min_length=1, description="measurement name")
+    channel: str = Field(min_length=1, description="stream channel carrying it (model units)")
 
 
-@dataclass(frozen=True)
-class LinearModel:
+class LinearModel(EstimatorConfigModel):
     """Discrete deviation model ``x_{k+1} - x* = F (x_k - x*) + G (u_k - u*) + w``,
     ``y_k = H x_k + v``, ``w ~ N(0, Q)``, ``v ~ N(0, R)``, sampled every ``dt_s``.
 
-    Matrices are tuples of row tuples. ``x_trim``/``u_trim`` are ``x*``/``u*``; ``P0`` the
-    initial covariance of ``x - x*``. Surface inputs are deflections in rad.
+    Matrices are tuples of row tuples (nested JSON lists). ``x_trim``/``u_trim`` are
+    ``x*``/``u*``; ``P0`` the initial covariance of ``x - x*``. Surface inputs are deflections
+    in rad.
     """
 
-    name: str
-    dt_s: float
-    states: tuple[str, ...]
-    inputs: tuple[ModelInput, ...]
-    measurements: tuple[ModelMeasurement, ...]
-    F: tuple[tuple[float, ...], ...]  # noqa: N815 - the usual names of the model matrices
-    G: tuple[tuple[float, ...], ...]  # noqa: N815
-    H: tuple[tuple[float, ...], ...]  # noqa: N815
-    Q: tuple[tuple[float, ...], ...]  # noqa: N815
-    R: tuple[tuple[float, ...], ...]  # noqa: N815
-    P0: tuple[tuple[float, ...], ...]  # noqa: N815
-    x_trim: tuple[float, ...]
-    u_trim: tuple[float, ...]
+    name: str = Field("custom", min_length=1, description="model name (recorded, not used)")
+    dt_s: Number = Field(gt=0.0, le=3600.0, description="sample period of the model, s")
+    states: tuple[str, ...] = Field(min_length=1, description="state names (n)")
+    inputs: tuple[ModelInput, ...] = Field(min_length=1, description="inputs (m), G's columns")
+    measurements: tuple[ModelMeasurement, ...] = Field(
+        min_length=1, description="measured outputs (p), H's rows"
+    )
+    F: Matrix = Field(description="(n, n) state transition of the deviation from trim")  # noqa: N815
+    G: Matrix = Field(description="(n, m) input matrix, per rad of deflection")  # noqa: N815
+    H: Matrix = Field(description="(p, n) measurement matrix")  # noqa: N815
+    Q: Matrix = Field(description="(n, n) process noise covariance per step, PSD")  # noqa: N815
+    R: Matrix = Field(description="(p, p) measurement noise covariance, PD, model units^2")  # noqa: N815
+    P0: Matrix = Field(description="(n, n) initial covariance of x - x*, PD")  # noqa: N815
+    x_trim: tuple[Number, ...] = Field(description="(n,) trim state x*")
+    u_trim: tuple[Number, ...] = Field(description="(m,) trim inputs u* (surfaces in rad)")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> LinearModel:
+        for label, names in (
+            ("states", self.states),
+            ("inputs", [i.name for i in self.inputs]),
+            ("measurements", [y.name for y in self.measurements]),
+        ):
+            if len(set(names)) != len(names):
+                raise ValueError(f"model.{label}: names must be unique")
+        if not any(i.surface for i in self.inputs):
+            raise ValueError("model.inputs: at least one input must be a monitored surface")
+        if any(i.name == NOMINAL for i in self.inputs):
+            raise ValueError(f"model.inputs: {NOMINAL!r} is reserved for the no-fault hypothesis")
+        channels = [i.channel for i in self.inputs] + [y.channel for y in self.measurements]
+        if len(set(channels)) != len(channels):
+            raise ValueError("model: every input and measurement needs its own channel")
+        n, m, p = len(self.states), len(self.inputs), len(self.measurements)
+        shapes = {"F": (n, n), "G": (n, m), "H": (p, n), "Q": (n, n), "R": (p, p), "P0": (n, n)}
+        for key, (rows, cols) in shapes.items():
+            mat = getattr(self, key)
+            if len(mat) != rows or any(len(row) != cols for row in mat):
+                raise ValueError(f"model.{key}: expected {rows} rows of {cols} numbers")
+        for key, length in (("x_trim", n), ("u_trim", m)):
+            if len(getattr(self, key)) != length:
+                raise ValueError(f"model.{key}: expected {length} numbers")
+        _check_covariance("model.Q", self.Q, definite=False)
+        _check_covariance("model.R", self.R, definite=True)
+        _check_covariance("model.P0", self.P0, definite=True)
+        return self
 
     @property
     def surfaces(self) -> tuple[str, ...]:
@@ -116,276 +162,250 @@ class LinearModel:
         return np.array(getattr(self, key), dtype=np.float64)
 
 
-@dataclass(frozen=True)
-class StmmaeConfig:
-    """Validated configuration (build it with :func:`parse_config`; fields documented in
-    ``docs/methods-stmmae.md``, "Configuration")."""
-
-    model: LinearModel
-    variant: Variant = "improved"
-    likelihood: Likelihood = "gaussian"
-    forgetting_factor: float = 0.95
-    weakening_factor: float | Literal["auto"] = "auto"
-    fading_weights: tuple[float, ...] | None = None
-    deflection_fading_weight: float = 1.0
-    deflection_diffusion_deg2_s: float = 0.25
-    deflection_initial_std_deg: float = 10.0
-    probability_floor: float = 0.001
-    detect_probability: float = 0.9
-    clear_probability: float = 0.05
-    hold_s: float = 0.1
-    clear_hold_s: float = 0.1
-    onset_probability: float = 0.5
-    watch_probability: float = 0.5
-    deflection_smoothing_s: float = 0.2
-    fault_kind_window_s: float = 2.0
-    deflection_limit_deg: float = 30.0
-    oscillation_swing_deg: float = 2.0
-    min_deflection_error_deg: float = 1.0
-    nis_watch: float = 3.0
-    health_window_samples: int = 1000
-    # built once from the above (not part of the configuration's identity)
-    kernel_vector: FloatArray = field(init=False, repr=False, compare=False, hash=False)
-    arrays: kern.BankArrays = field(init=False, repr=False, compare=False, hash=False)
-    surface_inputs: Any = field(init=False, repr=False, compare=False, hash=False)
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "kernel_vector", _kernel_vector(self))
-        object.__setattr__(self, "arrays", build_bank(self))
-        idx = [i for i, inp in enumerate(self.model.inputs) if inp.surface]
-        object.__setattr__(self, "surface_inputs", np.array(idx, dtype=np.int64))
-
-    @property
-    def hypotheses(self) -> tuple[str, ...]:
-        """``nominal`` then the surfaces."""
-        return (NOMINAL, *self.model.surfaces)
-
-
-def _number(name: str, value: Any, lo: float, hi: float, *, lo_open: bool = False) -> float:
-    if not _is_number(value) or not math.isfinite(float(value)):
-        raise ConfigError(f"{name}: expected a finite number, got {value!r}")
-    v = float(value)
-    if v < lo or v > hi or (lo_open and v == lo):
-        bracket = "(" if lo_open else "["
-        raise ConfigError(f"{name}: expected a number in {bracket}{lo:g}, {hi:g}], got {v:g}")
-    return v
-
-
-def _name(name: str, value: Any) -> str:
-    if not isinstance(value, str) or not value:
-        raise ConfigError(f"{name}: expected a non-empty string, got {value!r}")
-    return value
-
-
-def _matrix(name: str, value: Any, rows: int, cols: int) -> tuple[tuple[float, ...], ...]:
-    if not isinstance(value, Sequence) or isinstance(value, str) or len(value) != rows:
-        raise ConfigError(f"{name}: expected {rows} rows of {cols} numbers")
-    out = []
-    for i, row in enumerate(value):
-        if not isinstance(row, Sequence) or isinstance(row, str) or len(row) != cols:
-            raise ConfigError(f"{name}[{i}]: expected a row of {cols} numbers")
-        vals = []
-        for j, v in enumerate(row):
-            if not _is_number(v) or not math.isfinite(float(v)):
-                raise ConfigError(f"{name}[{i}][{j}]: expected a finite number, got {v!r}")
-            vals.append(float(v))
-        out.append(tuple(vals))
-    return tuple(out)
-
-
-def _vector(name: str, value: Any, length: int) -> tuple[float, ...]:
-    return _matrix(name, [value] if isinstance(value, Sequence) else value, 1, length)[0]
-
-
-def _check_covariance(name: str, mat: tuple[tuple[float, ...], ...], *, definite: bool) -> None:
-    arr = np.array(mat)
+def _check_covariance(name: str, mat: Matrix, *, definite: bool) -> None:
+    arr = np.array(mat, dtype=np.float64)
     if not np.array_equal(arr, arr.T):
-        raise ConfigError(f"{name}: must be symmetric")
+        raise ValueError(f"{name}: must be symmetric")
     low = float(np.linalg.eigvalsh(arr)[0]) if arr.size else 1.0
     if (definite and not low > 0.0) or low < 0.0:
         kind = "positive definite" if definite else "positive semi-definite"
-        raise ConfigError(f"{name}: must be {kind} (smallest eigenvalue {low:.3g})")
+        raise ValueError(f"{name}: must be {kind} (smallest eigenvalue {low:.3g})")
 
 
-def _names(name: str, value: Any) -> tuple[str, ...]:
-    if not isinstance(value, Sequence) or isinstance(value, str) or not value:
-        raise ConfigError(f"{name}: expected a non-empty list of names")
-    names = tuple(_name(f"{name}[{i}]", v) for i, v in enumerate(value))
-    if len(set(names)) != len(names):
-        raise ConfigError(f"{name}: names must be unique")
-    return names
+def _reference() -> LinearModel:
+    return LinearModel.model_validate(reference_model())
 
 
-def _inputs(value: Any) -> tuple[ModelInput, ...]:
-    if not isinstance(value, Sequence) or isinstance(value, str) or not value:
-        raise ConfigError("model.inputs: expected a non-empty list of {name, channel, surface}")
-    out = []
-    for i, item in enumerate(value):
-        where = f"model.inputs[{i}]"
-        if not isinstance(item, Mapping) or set(item) - {"name", "channel", "surface"}:
-            raise ConfigError(f"{where}: expected an object {{name, channel, surface}}")
-        surface = item.get("surface", True)
-        if not isinstance(surface, bool):
-            raise ConfigError(f"{where}.surface: expected true or false")
-        nm = _name(f"{where}.name", item.get("name"))
-        out.append(ModelInput(nm, _name(f"{where}.channel", item.get("channel")), surface))
-    if not any(i.surface for i in out):
-        raise ConfigError("model.inputs: at least one input must be a monitored surface")
-    if len({i.name for i in out}) != len(out):
-        raise ConfigError("model.inputs: names must be unique")
-    if any(i.name == NOMINAL for i in out):
-        raise ConfigError(f"model.inputs: {NOMINAL!r} is reserved for the no-fault hypothesis")
-    return tuple(out)
+class StmmaeConfig(EstimatorConfigModel):
+    """Configuration of the bank (``docs/methods-stmmae.md``, "Configuration").
 
+    Derived arrays (the bank's matrices, the kernel's scalar vector) are computed once per
+    configuration and cached on the instance; they are not part of its identity.
+    """
 
-def _measurements(value: Any) -> tuple[ModelMeasurement, ...]:
-    if not isinstance(value, Sequence) or isinstance(value, str) or not value:
-        raise ConfigError("model.measurements: expected a non-empty list of {name, channel}")
-    out = []
-    for i, item in enumerate(value):
-        where = f"model.measurements[{i}]"
-        if not isinstance(item, Mapping) or set(item) - {"name", "channel"}:
-            raise ConfigError(f"{where}: expected an object {{name, channel}}")
-        nm = _name(f"{where}.name", item.get("name"))
-        out.append(ModelMeasurement(nm, _name(f"{where}.channel", item.get("channel"))))
-    return tuple(out)
-
-
-def parse_model(raw: Mapping[str, Any]) -> LinearModel:
-    """Validate a model mapping (the shape of :func:`small_uav.reference_model`)."""
-    if not isinstance(raw, Mapping):
-        raise ConfigError("model: expected an object")
-    known = {f.name for f in fields(LinearModel)}
-    unknown = sorted(set(raw) - known)
-    if unknown:
-        raise ConfigError(f"model.{unknown[0]}: unknown field (known: {', '.join(sorted(known))})")
-    missing = sorted(k for k in known if k not in raw and k != "name")
-    if missing:
-        raise ConfigError(f"model.{missing[0]}: missing")
-    states = _names("model.states", raw["states"])
-    inputs = _inputs(raw["inputs"])
-    meas = _measurements(raw["measurements"])
-    n, m, p = len(states), len(inputs), len(meas)
-    channels = [i.channel for i in inputs] + [y.channel for y in meas]
-    if len(set(channels)) != len(channels):
-        raise ConfigError("model: every input and measurement needs its own channel")
-    shapes = {"F": (n, n), "G": (n, m), "H": (p, n), "Q": (n, n), "R": (p, p), "P0": (n, n)}
-    mats = {k: _matrix(f"model.{k}", raw[k], *shapes[k]) for k in MATRIX_KEYS}
-    _check_covariance("model.Q", mats["Q"], definite=False)
-    _check_covariance("model.R", mats["R"], definite=True)
-    _check_covariance("model.P0", mats["P0"], definite=True)
-    return LinearModel(
-        name=_name("model.name", raw.get("name", "custom")),
-        dt_s=_number("model.dt_s", raw["dt_s"], 0.0, 3600.0, lo_open=True),
-        states=states,
-        inputs=inputs,
-        measurements=meas,
-        x_trim=_vector("model.x_trim", raw["x_trim"], n),
-        u_trim=_vector("model.u_trim", raw["u_trim"], m),
-        **mats,
+    model: LinearModel = Field(
+        default_factory=_reference,
+        description="the discrete linear(ized) aircraft model; null or absent: the reference "
+        "Aerosonde model at 25 m/s, 100 Hz (estimators/models/small_uav.py)",
+    )
+    variant: Variant = Field(
+        "improved",
+        description="'improved': two-sided fading L A L (seed); 'strong_tracking': one-sided "
+        "L A; 'emmae': plain Kalman bank",
+    )
+    likelihood: Likelihood = Field(
+        "gaussian", description="'gaussian': full density; 'euclidean': the seed's 1-D norm form"
+    )
+    forgetting_factor: Number = Field(
+        0.95, gt=0.0, le=1.0, description="rho of the innovation covariance estimate"
+    )
+    weakening_factor: Annotated[Number, Field(ge=1.0, le=1e6)] | Literal["auto"] = Field(
+        "auto",
+        description="beta >= 1 of the fading factor, or 'auto' (1 + 3 sqrt(2(1-rho)/(p(1+rho))))",
+    )
+    fading_weights: tuple[Annotated[Number, Field(ge=1.0, le=1e6)], ...] | None = Field(
+        None,
+        description="prior-knowledge weights a_j of the fading factors, one per model "
+        "state, each >= 1 (null: all 1)",
+    )
+    deflection_fading_weight: Number = Field(
+        1.0, ge=1.0, le=1e6, description="a_j of the deflection state(s)"
+    )
+    deflection_diffusion_deg2_s: Number = Field(
+        0.25, gt=0.0, le=1e6, description="random-walk intensity of a deflection state, deg^2/s"
+    )
+    deflection_initial_std_deg: Number = Field(
+        10.0, gt=0.0, le=180.0, description="initial std of a deflection state, deg"
+    )
+    probability_floor: Number = Field(
+        0.001, gt=0.0, le=0.01, description="floor of every single-fault hypothesis probability"
+    )
+    detect_probability: Number = Field(
+        0.9, gt=0.5, le=1.0, description="detection level of a surface's fault probability"
+    )
+    clear_probability: Number = Field(
+        0.05, gt=0.0, le=0.5, description="clearance level of a surface's fault probability"
+    )
+    hold_s: Number = Field(0.1, ge=0.0, le=3600.0, description="detection hold time, s")
+    clear_hold_s: Number = Field(
+        1.0,
+        ge=0.0,
+        le=3600.0,
+        description="clearance hold time, s: the clearance condition must hold this long",
+    )
+    min_log_likelihood_ratio: Number = Field(
+        6.0,
+        ge=0.0,
+        le=1e6,
+        description="smallest log-likelihood ratio of the fault filter against the no-fault "
+        "filter, summed over the detection hold, for a detection (nats)",
+    )
+    pair_hypotheses: bool = Field(
+        True,
+        strict=True,
+        description="add one filter per pair of surfaces (both deflections free) so that two "
+        "overlapping faults have a hypothesis that explains them; decisions then use each "
+        "surface's marginal fault probability",
+    )
+    pair_probability_floor: Number = Field(
+        1e-6,
+        gt=0.0,
+        le=0.01,
+        description="probability floor of each pair hypothesis (a double fault is rarer)",
+    )
+    rebase_on_detection: bool = Field(
+        False,
+        strict=True,
+        description="on detection every other filter takes the faulty surface at its fault "
+        "filter's estimate (a second fault is then isolated against the first); clearance "
+        "then needs the surface to follow its command again",
+    )
+    clear_deflection_deg: Number = Field(
+        1.5,
+        gt=0.0,
+        le=180.0,
+        description="rebased bank: clearance band of the smoothed |deflection estimate - "
+        "command|, deg",
+    )
+    clear_smoothing_s: Number = Field(
+        0.5,
+        gt=0.0,
+        le=3600.0,
+        description="time constant of the smoothed deflection error of the clearance test, s",
+    )
+    oscillation_correlation: Number = Field(
+        -0.38,
+        gt=-1.0,
+        lt=0.0,
+        description="a fault is oscillating when the autocorrelation of its deflection history "
+        "(0.05 s block means over the kind span) falls below this at some lag",
+    )
+    onset_probability: Number = Field(
+        0.5, gt=0.0, le=1.0, description="level whose crossing marks a fault's onset"
+    )
+    watch_probability: Number = Field(
+        0.5, gt=0.0, le=1.0, description="'watch' level of an unconfirmed fault probability"
+    )
+    deflection_smoothing_s: Number = Field(
+        0.2, gt=0.0, le=3600.0, description="time constant of the smoothed deflection estimate, s"
+    )
+    fault_kind_window_s: Number = Field(
+        5.0,
+        ge=1.0,
+        le=kern.KIND_BLOCKS * kern.KIND_BLOCK_S,
+        description="span from the start of the detection hold over which the fault kind is "
+        "judged, s (longer than half the slowest oscillation period to be recognised)",
+    )
+    deflection_limit_deg: Number = Field(
+        30.0, gt=0.0, le=180.0, description="clip of the deflection estimate, deg"
+    )
+    oscillation_swing_deg: Number = Field(
+        2.0,
+        gt=0.0,
+        le=180.0,
+        description="swing (2 std of the deflection estimate) an oscillating fault must also "
+        "exceed, deg",
+    )
+    min_deflection_error_deg: Number = Field(
+        1.0,
+        ge=0.0,
+        le=180.0,
+        description="smallest |deflection estimate - command| for a detection, deg",
+    )
+    nis_watch: Number = Field(
+        3.0,
+        gt=0.0,
+        le=1e6,
+        description="'watch' level of the no-fault filter's mean NIS per measurement",
+    )
+    health_window_samples: int = Field(
+        1000, strict=True, ge=1, le=10**8, description="health window length, stream samples"
     )
 
+    @field_validator("model", mode="before")
+    @classmethod
+    def _default_model(cls, value: Any) -> Any:
+        return reference_model() if value is None else value
 
-def model_to_dict(model: LinearModel) -> dict[str, Any]:
-    """JSON-ready form of a model (inverse of :func:`parse_model`)."""
-    return {
-        "name": model.name,
-        "dt_s": model.dt_s,
-        "states": list(model.states),
-        "inputs": [
-            {"name": i.name, "channel": i.channel, "surface": i.surface} for i in model.inputs
-        ],
-        "measurements": [{"name": y.name, "channel": y.channel} for y in model.measurements],
-        **{k: [list(row) for row in getattr(model, k)] for k in MATRIX_KEYS},
-        "x_trim": list(model.x_trim),
-        "u_trim": list(model.u_trim),
-    }
+    @model_validator(mode="after")
+    def _consistent(self) -> StmmaeConfig:
+        if self.clear_probability >= self.detect_probability:
+            raise ValueError("clear_probability: must be below detect_probability")
+        s = len(self.model.surfaces)
+        pairs = s * (s - 1) // 2 if self.pair_hypotheses else 0
+        if 1.0 - s * self.probability_floor - pairs * self.pair_probability_floor <= 0.5:
+            raise ValueError(
+                "probability_floor: too large for the number of hypotheses (the floors of all "
+                "fault hypotheses must sum to less than 0.5)"
+            )
+        if self.fading_weights is not None and len(self.fading_weights) != len(self.model.states):
+            raise ValueError(
+                f"fading_weights: expected {len(self.model.states)} numbers (one per model state)"
+            )
+        return self
+
+    @property
+    def hypotheses(self) -> tuple[str, ...]:
+        """``nominal``, the surfaces, then (with ``pair_hypotheses``) each pair ``a+b``."""
+        names = self.model.surfaces
+        return tuple(
+            "+".join(names[i] for i in members) if members else NOMINAL
+            for members in hypothesis_members(self)
+        )
+
+    @cached_property
+    def kernel_vector(self) -> FloatArray:
+        """The kernel's scalar configuration (``CFG_*``), read-only."""
+        return _kernel_vector(self)
+
+    @cached_property
+    def arrays(self) -> kern.BankArrays:
+        """The bank's matrices (:func:`build_bank`), read-only."""
+        return build_bank(self)
+
+    @cached_property
+    def surface_inputs(self) -> IntArray:
+        """Input index of each monitored surface."""
+        idx = [i for i, inp in enumerate(self.model.inputs) if inp.surface]
+        out = np.array(idx, dtype=np.int64)
+        out.setflags(write=False)
+        return out
 
 
-_SCALARS: dict[str, tuple[float, float, bool]] = {
-    # name: (low, high, low excluded)
-    "forgetting_factor": (0.0, 1.0, True),
-    "deflection_fading_weight": (1.0, 1e6, False),
-    "deflection_diffusion_deg2_s": (0.0, 1e6, True),
-    "deflection_initial_std_deg": (0.0, 180.0, True),
-    "probability_floor": (0.0, 0.01, True),
-    "detect_probability": (0.5, 1.0, True),
-    "clear_probability": (0.0, 0.5, True),
-    "hold_s": (0.0, 3600.0, False),
-    "clear_hold_s": (0.0, 3600.0, False),
-    "onset_probability": (0.0, 1.0, True),
-    "watch_probability": (0.0, 1.0, True),
-    "deflection_smoothing_s": (0.0, 3600.0, True),
-    "fault_kind_window_s": (0.0, 3600.0, True),
-    "deflection_limit_deg": (0.0, 180.0, True),
-    "oscillation_swing_deg": (0.0, 180.0, True),
-    "min_deflection_error_deg": (0.0, 180.0, False),
-    "nis_watch": (0.0, 1e6, True),
-}
+CONFIG_MODEL = StmmaeConfig
 
 
 def parse_config(raw: Mapping[str, Any]) -> StmmaeConfig:
     """Validate a JSON-like mapping into a :class:`StmmaeConfig`.
 
     Raises:
-        ConfigError: naming the first bad field (unknown keys, wrong types or shapes, values
-            out of range, matrices that are not covariances, inconsistent thresholds).
+        ConfigError: naming each bad field (unknown keys, wrong types or shapes, values out of
+            range, matrices that are not covariances, inconsistent thresholds).
     """
     if not isinstance(raw, Mapping):
-        raise ConfigError(f"config: expected an object, got {type(raw).__name__}")
-    known = {f.name for f in fields(StmmaeConfig) if f.init}
-    unknown = sorted(set(raw) - known)
-    if unknown:
-        raise ConfigError(f"{unknown[0]}: unknown field (known: {', '.join(sorted(known))})")
-    model = parse_model(raw["model"] if raw.get("model") is not None else reference_model())
-    variant = raw.get("variant", "improved")
-    if variant not in VARIANTS:
-        raise ConfigError(f"variant: expected one of {', '.join(VARIANTS)}, got {variant!r}")
-    likelihood = raw.get("likelihood", "gaussian")
-    if likelihood not in LIKELIHOODS:
-        raise ConfigError(
-            f"likelihood: expected one of {', '.join(LIKELIHOODS)}, got {likelihood!r}"
-        )
-    default = {f.name: f.default for f in fields(StmmaeConfig) if f.init}
-    scalars = {
-        key: _number(key, raw.get(key, default[key]), lo, hi, lo_open=lo_open)
-        for key, (lo, hi, lo_open) in _SCALARS.items()
-    }
-    beta = raw.get("weakening_factor", "auto")
-    if beta != "auto":
-        beta = _number("weakening_factor", beta, 1.0, 1e6)
-    weights = raw.get("fading_weights")
-    if weights is not None:
-        weights = _vector("fading_weights", weights, len(model.states))
-        if min(weights) < 1.0:
-            raise ConfigError("fading_weights: every weight must be >= 1")
-    window = raw.get("health_window_samples", default["health_window_samples"])
-    if not isinstance(window, int) or isinstance(window, bool) or not 1 <= window <= 10**8:
-        raise ConfigError(f"health_window_samples: expected an integer in [1, 1e8], got {window!r}")
-    if scalars["clear_probability"] >= scalars["detect_probability"]:
-        raise ConfigError("clear_probability: must be below detect_probability")
-    if 1.0 - len(model.surfaces) * scalars["probability_floor"] <= 0.5:
-        raise ConfigError("probability_floor: too large for the number of hypotheses")
-    return StmmaeConfig(
-        model=model,
-        variant=variant,
-        likelihood=likelihood,
-        weakening_factor=beta,
-        fading_weights=weights,
-        health_window_samples=window,
-        **scalars,
-    )
+        raise ConfigError(f"{NAME}: config: expected an object, got {type(raw).__name__}")
+    try:
+        return StmmaeConfig.model_validate(dict(raw))
+    except ValidationError as exc:
+        raise config_error(NAME, exc) from exc
+
+
+def parse_model(raw: Mapping[str, Any]) -> LinearModel:
+    """Validate a model mapping (the shape of :func:`small_uav.reference_model`)."""
+    try:
+        return LinearModel.model_validate(raw)
+    except ValidationError as exc:
+        raise config_error(f"{NAME} model", exc) from exc
+
+
+def model_to_dict(model: LinearModel) -> dict[str, Any]:
+    """JSON-ready form of a model (inverse of :func:`parse_model`)."""
+    return model.model_dump(mode="json")
 
 
 def config_to_dict(config: StmmaeConfig) -> dict[str, Any]:
     """The full configuration with defaults filled in, JSON-serializable."""
-    out: dict[str, Any] = {"model": model_to_dict(config.model)}
-    for f in fields(StmmaeConfig):
-        if not f.init or f.name == "model":
-            continue
-        value = getattr(config, f.name)
-        out[f.name] = list(value) if isinstance(value, tuple) else value
-    return out
+    return config.model_dump(mode="json")
 
 
 def required_channels(config: StmmaeConfig) -> tuple[str, ...]:
@@ -423,25 +443,45 @@ def _kernel_vector(config: StmmaeConfig) -> FloatArray:
     cfg[kern.CFG_MIN_ERR] = math.radians(config.min_deflection_error_deg)
     cfg[kern.CFG_LIMIT] = math.radians(config.deflection_limit_deg)
     cfg[kern.CFG_KIND_WINDOW_S] = config.fault_kind_window_s
+    cfg[kern.CFG_REBASE] = 1.0 if config.rebase_on_detection else 0.0
+    cfg[kern.CFG_CLEAR_DEFL] = math.radians(config.clear_deflection_deg)
+    cfg[kern.CFG_CLEAR_SMOOTH_S] = config.clear_smoothing_s
+    cfg[kern.CFG_MIN_LLR] = config.min_log_likelihood_ratio
+    cfg[kern.CFG_OSC_CORR] = config.oscillation_correlation
+    cfg[kern.CFG_OSC_SWING] = math.radians(config.oscillation_swing_deg)
     cfg.setflags(write=False)
     return cfg
 
 
+def hypothesis_members(config: StmmaeConfig) -> tuple[tuple[int, ...], ...]:
+    """Surfaces (indices among the monitored surfaces) each hypothesis declares faulty:
+    ``()`` for the no-fault filter, ``(i,)`` for each surface, then ``(i, j)``, ``i < j``,
+    for each pair when ``pair_hypotheses`` is set."""
+    s = len(config.model.surfaces)
+    out: list[tuple[int, ...]] = [(), *((i,) for i in range(s))]
+    if config.pair_hypotheses:
+        out += [(i, j) for i in range(s) for j in range(i + 1, s)]
+    return tuple(out)
+
+
 def build_bank(config: StmmaeConfig) -> kern.BankArrays:
-    """The bank's matrices: filter 0 is the model itself (its extra state fixed at zero);
-    filter ``h`` augments the state with surface ``h``'s deflection ``d``:
+    """The bank's matrices: filter 0 is the model itself (its extra states fixed at zero);
+    a fault filter augments the state with the deflection ``d_i`` of each surface it declares
+    faulty (one, or two for a pair), in slots ``n, n + 1``:
 
-        [x; d]_{k+1} = [[F, G_h], [0, 1]] [x; d]_k + G_(0,h) (u_k - u*) - G_h u*_h
-        Q_h = blkdiag(Q, q_d),  q_d = deflection_diffusion * dt,  P0_h = blkdiag(P0, s_d^2)
+        [x; d]_{k+1} = [[F, G_S], [0, I]] [x; d]_k + G_(0,S) (u_k - u*) - G_S u*_S
+        Q_S = blkdiag(Q, q_d I),  q_d = deflection_diffusion * dt,  P0_S = blkdiag(P0, s_d^2 I)
 
-    with ``G_h`` the surface's input column and ``G_(0,h)`` the input matrix with that column set
-    to zero.
+    with ``G_S`` the input columns of the surfaces ``S`` and ``G_(0,S)`` the input matrix with
+    those columns set to zero. Unused slots stay identically zero.
     """
     mdl = config.model
     f, g, h, q, r, p0 = (mdl.matrix(k) for k in MATRIX_KEYS)
     n, m = g.shape
     surf_idx = [i for i, inp in enumerate(mdl.inputs) if inp.surface]
-    nh, na = 1 + len(surf_idx), n + 1
+    members = hypothesis_members(config)
+    n_slots = max(len(mem) for mem in members)
+    nh, na = len(members), n + n_slots
     u_trim = np.array(mdl.u_trim)
     x_trim = np.array(mdl.x_trim)
     q_d = math.radians(1.0) ** 2 * config.deflection_diffusion_deg2_s * mdl.dt_s
@@ -454,23 +494,26 @@ def build_bank(config: StmmaeConfig) -> kern.BankArrays:
     p0a = np.zeros((nh, na, na))
     weights = np.ones(n) if config.fading_weights is None else np.array(config.fading_weights)
     aw = np.ones((nh, na))
-    for hyp in range(nh):
+    slot_surface = np.full((nh, n_slots), -1, dtype=np.int64)
+    floors = np.empty(nh)
+    for hyp, mem in enumerate(members):
         phi[hyp, :n, :n] = f
         gin[hyp, :n, :] = g
         qa[hyp, :n, :n] = q
         p0a[hyp, :n, :n] = p0
         aw[hyp, :n] = weights
-        if hyp == 0:
-            continue
-        col = surf_idx[hyp - 1]
-        phi[hyp, :n, n] = g[:, col]
-        phi[hyp, n, n] = 1.0
-        gin[hyp, :n, col] = 0.0
-        offset[hyp, :n] = -g[:, col] * u_trim[col]
-        qa[hyp, n, n] = q_d
-        p0a[hyp, n, n] = s_d2
-        x0[hyp, n] = u_trim[col]
-        aw[hyp, n] = config.deflection_fading_weight
+        floors[hyp] = config.pair_probability_floor if len(mem) > 1 else config.probability_floor
+        for e, surface in enumerate(mem):
+            col, slot = surf_idx[surface], n + e
+            slot_surface[hyp, e] = surface
+            phi[hyp, :n, slot] = g[:, col]
+            phi[hyp, slot, slot] = 1.0
+            gin[hyp, :n, col] = 0.0
+            offset[hyp, :n] -= g[:, col] * u_trim[col]
+            qa[hyp, slot, slot] = q_d
+            p0a[hyp, slot, slot] = s_d2
+            x0[hyp, slot] = u_trim[col]
+            aw[hyp, slot] = config.deflection_fading_weight
     ha = np.zeros((h.shape[0], na))
     ha[:, :n] = h
     hqh = np.einsum("ij,hjk,ik->hi", ha, qa, ha)
@@ -493,6 +536,8 @@ def build_bank(config: StmmaeConfig) -> kern.BankArrays:
         y_trim=h @ x_trim,
         x0=x0,
         p0=p0a,
+        slot_surface=slot_surface,
+        floors=floors,
     )
     for a in arrays:
         a.setflags(write=False)
@@ -525,28 +570,104 @@ def _sparse_rows(name: str, mats: FloatArray) -> tuple[dict[str, Any], dict[str,
 class StmmaeState:
     """Everything the bank carries between batches.
 
+    The compiled loop reads and writes one flat float64 vector; this object holds it read-only
+    and :func:`state_parts` gives every part a name and a shape (the layout table of
+    ``stmmae_kernels.state_layout``), so no code outside the kernel boundary indexes it by
+    number.
+
     Attributes:
         version: schema version (``STATE_VERSION``).
         t_last_s: time of the last sample seen (-inf before any).
-        vector: flat float64 vector laid out by ``stmmae_kernels.state_layout`` (filters' x, P
-            and innovation covariance estimates, probabilities, last inputs, decision fields,
-            health-window accumulators). Never modified in place.
+        vector: FloatArray  # (layout.length,) packed parts, never modified in place.
+        layout_version: the layout ``vector`` has: ``STATE_VERSION``, or 2 for a version-2
+            state just loaded, whose new parts need the configuration and are added by the
+            first :func:`state_parts` or :func:`step` (see :func:`_upgrade_layout_v2`).
     """
 
     version: int
     t_last_s: float
     vector: FloatArray
+    layout_version: int = STATE_VERSION
+
+
+@dataclass(frozen=True)
+class StateParts:
+    """Named, read-only views of a state's vector (shapes for ``nh`` hypotheses of ``na``
+    states, ``p`` measurements, ``m`` inputs, ``s = nh - 1`` surfaces).
+
+    Attributes:
+        samples_seen: samples stepped so far.
+        covariance_failures: samples where some filter's S was not positive definite.
+        t_prev_s: time of the previous sample (NaN before any).
+        x: FloatArray  # (nh, na) filter states (deviation from trim; last entry of a fault
+            filter: the surface's absolute deflection, rad).
+        P: FloatArray  # (nh, na, na) filter covariances.
+        V: FloatArray  # (nh, p, p) innovation covariance estimates of the fading factors.
+        V_started: FloatArray  # (nh,) 1 once V holds a first innovation.
+        probabilities: FloatArray  # (nh,) hypothesis probabilities.
+        u_last: FloatArray  # (m,) last valid inputs (commands).
+        decisions: FloatArray  # (s, kern.D_LEN) decision fields per surface (``D_*``).
+        kind_blocks: FloatArray  # (s, kern.KIND_BLOCKS) 0.05 s block means of the deflection
+            estimate over the kind span (rad).
+        window: FloatArray  # (kern.W_LEN,) accumulators of the open health window (``W_*``).
+    """
+
+    samples_seen: float
+    covariance_failures: float
+    t_prev_s: float
+    x: FloatArray
+    P: FloatArray  # noqa: N815 - the usual name of a covariance
+    V: FloatArray  # noqa: N815
+    V_started: FloatArray  # noqa: N815
+    probabilities: FloatArray
+    u_last: FloatArray
+    decisions: FloatArray
+    kind_blocks: FloatArray
+    window: FloatArray
 
 
 def layout(config: StmmaeConfig) -> kern.Layout:
     """The state layout of a configuration's bank."""
     nh, na = config.arrays.x0.shape
-    return kern.state_layout(nh, na, config.arrays.h.shape[0], config.arrays.gin.shape[2])
+    arr = config.arrays
+    return kern.state_layout(nh, na, arr.h.shape[0], arr.gin.shape[2], len(config.model.surfaces))
+
+
+def state_parts(config: StmmaeConfig, state: StmmaeState) -> StateParts:
+    """The named parts of ``state`` under ``config``'s layout (read-only views, no copies).
+
+    Raises:
+        EstimatorError: the state does not belong to this configuration.
+    """
+    lay = layout(config)
+    vec = _current_vector(config, state)
+    if vec.shape != (lay.length,):
+        raise EstimatorError(
+            f"state of length {vec.shape[0]} does not fit this configuration "
+            f"(expected {lay.length})"
+        )
+    nh, na, p, m = lay.nh, lay.na, lay.p, lay.m
+    blocks = vec[lay.filt : lay.filt + nh * lay.filt_len].reshape(nh, lay.filt_len)
+    v_off = na + na * na
+    return StateParts(
+        samples_seen=float(vec[kern.ST_N_SEEN]),
+        covariance_failures=float(vec[kern.ST_COV_FAIL]),
+        t_prev_s=float(vec[kern.ST_T_PREV]),
+        x=blocks[:, :na],
+        P=blocks[:, na:v_off].reshape(nh, na, na),
+        V=blocks[:, v_off : v_off + p * p].reshape(nh, p, p),
+        V_started=blocks[:, v_off + p * p],
+        probabilities=vec[lay.probs : lay.probs + nh],
+        u_last=vec[lay.u_last : lay.u_last + m],
+        decisions=vec[lay.decisions : lay.kind_blocks].reshape(lay.s, kern.D_LEN),
+        kind_blocks=vec[lay.kind_blocks : lay.window].reshape(lay.s, kern.KIND_BLOCKS),
+        window=vec[lay.window : lay.window + kern.W_LEN],
+    )
 
 
 def initial_state(config: StmmaeConfig) -> StmmaeState:
-    """Filters at the trim (fault filters: deflection at its trim), no-fault probability
-    ``1 - (number of surfaces) * floor``, each fault hypothesis at the floor."""
+    """Filters at the trim (fault filters: deflections at their trim), each fault hypothesis at
+    its floor, the no-fault hypothesis the rest."""
     lay = layout(config)
     arr = config.arrays
     vec = np.zeros(lay.length)
@@ -555,53 +676,155 @@ def initial_state(config: StmmaeConfig) -> StmmaeState:
         off = lay.filt + f * lay.filt_len
         vec[off : off + lay.na] = arr.x0[f]
         vec[off + lay.na : off + lay.na + lay.na * lay.na] = arr.p0[f].ravel()
-    floor = config.probability_floor
-    vec[lay.probs] = 1.0 - (lay.nh - 1) * floor
-    vec[lay.probs + 1 : lay.probs + lay.nh] = floor
+    vec[lay.probs + 1 : lay.probs + lay.nh] = arr.floors[1:]
+    vec[lay.probs] = 1.0 - float(arr.floors[1:].sum())
     vec[lay.u_last : lay.u_last + lay.m] = arr.u_trim
-    for h in range(lay.nh - 1):
+    for h in range(lay.s):
         d = lay.decisions + h * kern.D_LEN
-        for idx in (kern.D_ABOVE_T, kern.D_ONSET_T, kern.D_BELOW_T, kern.D_DETECTED_T):
+        for idx in kern.D_TIMES:
             vec[d + idx] = np.nan
+        vec[d + kern.D_BLK_IDX] = -1.0
+        vec[d + kern.D_KIND_CORR] = np.nan
+        vec[d + kern.D_DEFL] = np.nan
     vec.setflags(write=False)
     return StmmaeState(version=STATE_VERSION, t_last_s=-math.inf, vector=vec)
 
 
 def dump_state(state: StmmaeState) -> bytes:
-    """Versioned byte form of the state (exact round trip; see :func:`dump_vector_state`)."""
-    return dump_vector_state(NAME, state.version, state.t_last_s, state.vector)
+    """Versioned byte form of the state (exact round trip; see :func:`dump_vector_state`). A
+    loaded version-2 state not stepped yet is written back as the version-2 state it is."""
+    return dump_vector_state(NAME, state.layout_version, state.t_last_s, state.vector)
+
+
+def _upgrade_v1(doc: dict[str, Any]) -> dict[str, Any]:
+    """Version 1 -> 2: same layout; the three episode sums (``D_EP_*``) changed meaning from
+    equal-weight sums of the smoothed deflection to precision-weighted sums of the clipped
+    estimate. Equal weights are one valid weighting, so a version-1 episode's mean and swing
+    read the same under version 2 (later samples then carry their precision weights): the
+    vector is kept as it is."""
+    return {**doc, "version": 2}
+
+
+_V2_D_LEN = 10  # decision fields per surface in versions 1 and 2
+
+
+def _upgrade_layout_v2(config: StmmaeConfig, vector: FloatArray) -> FloatArray:
+    """Version 2 -> 3 (needs the configuration, so it runs at the first use of a loaded state,
+    not in :func:`load_state`). Version 2 had the no-fault and single-fault filters with one
+    deflection slot and ten decision fields per surface. Kept: every filter's x, P, V (a second
+    deflection slot, if any, starts as in a fresh filter: zero, uncorrelated), their
+    probabilities, the last inputs, the header and the health-window accumulators; each
+    surface's ten decision fields. New parts start as a fresh state has them: pair filters
+    (at their initial state, probability at the pair floor, the others scaled to sum to one),
+    the new decision fields (except that an active fault's kind span restarts at the last
+    sample, so its kind is judged ``fault_kind_window_s`` later, and the clearance smoothing
+    starts from the last smoothed estimate minus the last command), an empty kind history."""
+    lay = layout(config)
+    s = lay.s
+    n = len(config.model.states)
+    na_old, nh_old = n + 1, s + 1
+    p, m = lay.p, lay.m
+    flen_old = na_old + na_old * na_old + p * p + 1
+    probs_old = kern.ST_HEADER + nh_old * flen_old
+    dec_old = probs_old + nh_old + m
+    length_old = dec_old + s * _V2_D_LEN + kern.W_LEN
+    if vector.shape != (length_old,):
+        raise EstimatorError(
+            f"version-2 state of length {vector.shape[0]} does not fit this configuration "
+            f"(expected {length_old})"
+        )
+    fresh = initial_state(config).vector.copy()
+    fresh[: kern.ST_HEADER] = vector[: kern.ST_HEADER]
+    for f in range(nh_old):
+        old = vector[kern.ST_HEADER + f * flen_old : kern.ST_HEADER + (f + 1) * flen_old]
+        off = lay.filt + f * lay.filt_len
+        fresh[off : off + na_old] = old[:na_old]
+        p_new = fresh[off + lay.na : off + lay.na + lay.na * lay.na].reshape(lay.na, lay.na)
+        p_new[:na_old, :na_old] = old[na_old : na_old + na_old * na_old].reshape(na_old, na_old)
+        v_new = off + lay.na + lay.na * lay.na
+        fresh[v_new : v_new + p * p + 1] = old[na_old + na_old * na_old :]
+    probs = fresh[lay.probs : lay.probs + lay.nh]
+    pairs_mass = float(probs[nh_old:].sum())
+    probs[:nh_old] = vector[probs_old : probs_old + nh_old] * (1.0 - pairs_mass)
+    fresh[lay.u_last : lay.u_last + m] = vector[probs_old + nh_old : dec_old]
+    old_dec = vector[dec_old : dec_old + s * _V2_D_LEN].reshape(s, _V2_D_LEN)
+    dec = fresh[lay.decisions : lay.kind_blocks].reshape(s, kern.D_LEN)
+    dec[:, :_V2_D_LEN] = old_dec
+    u_last = fresh[lay.u_last : lay.u_last + m]
+    t_prev = vector[kern.ST_T_PREV]
+    for h, col in enumerate(config.surface_inputs):
+        if old_dec[h, kern.D_SMOOTH_SET] == 1.0:
+            dec[h, kern.D_CSMOOTH] = old_dec[h, kern.D_SMOOTH] - u_last[col]
+        if old_dec[h, kern.D_ACTIVE] == 1.0:
+            dec[h, kern.D_KIND_T0] = t_prev
+        dec[h, kern.D_DEFL] = vector[kern.ST_HEADER + (h + 1) * flen_old + na_old - 1]
+        dec[h, kern.D_PROB] = probs[h + 1]
+    fresh[lay.window :] = vector[length_old - kern.W_LEN :]
+    fresh.setflags(write=False)
+    return fresh
+
+
+def _current_vector(config: StmmaeConfig, state: StmmaeState) -> FloatArray:
+    """The state's vector in the current layout."""
+    if state.layout_version == 2:
+        return _upgrade_layout_v2(config, state.vector)
+    return state.vector
+
+
+_UPGRADES: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {1: _upgrade_v1}
+_LAYOUT_VERSIONS = (2, STATE_VERSION)  # versions whose vector this code reads directly
 
 
 def load_state(data: bytes) -> StmmaeState:
-    """Inverse of :func:`dump_state`.
+    """Inverse of :func:`dump_state`; older versions are upgraded step by step
+    (``_upgrade_vN``: version N -> N + 1).
 
     Raises:
-        StateVersionError: the version is not ``STATE_VERSION``.
+        StateVersionError: a version this code neither reads nor upgrades.
         EstimatorError: the bytes are not a state of this estimator.
     """
-    t_last, vec = load_vector_state(data, NAME, STATE_VERSION, "an STMMAE")
-    return StmmaeState(version=STATE_VERSION, t_last_s=t_last, vector=vec)
+    try:
+        doc = json.loads(data)
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise EstimatorError(f"not an STMMAE state: {exc}") from exc
+    if not isinstance(doc, dict) or not isinstance(doc.get("version"), int):
+        raise EstimatorError("not an STMMAE state: no version")
+    if doc["version"] not in _LAYOUT_VERSIONS and doc["version"] not in _UPGRADES:
+        raise StateVersionError(
+            f"an STMMAE state version {doc['version']!r} is not supported "
+            f"(reads {list(_LAYOUT_VERSIONS)}, upgrades {sorted(_UPGRADES)})"
+        )
+    while doc["version"] not in _LAYOUT_VERSIONS:
+        doc = _UPGRADES[doc["version"]](doc)
+    version = int(doc["version"])
+    blob = json.dumps(doc, separators=(",", ":")).encode("ascii")
+    t_last, vec = load_vector_state(blob, NAME, version, "an STMMAE")
+    return StmmaeState(version=STATE_VERSION, t_last_s=t_last, vector=vec, layout_version=version)
 
 
 def filter_estimates(
     config: StmmaeConfig, state: StmmaeState
 ) -> list[tuple[FloatArray, FloatArray]]:
     """``(x, P)`` of each filter (deviation from trim; fault filters' last entry is the absolute
-    deflection), hypothesis order."""
-    lay = layout(config)
-    out = []
-    for f in range(lay.nh):
-        off = lay.filt + f * lay.filt_len
-        x = state.vector[off : off + lay.na].copy()
-        p = state.vector[off + lay.na : off + lay.na + lay.na * lay.na].reshape(lay.na, lay.na)
-        out.append((x, p.copy()))
-    return out
+    deflection), hypothesis order (copies)."""
+    parts = state_parts(config, state)
+    return [(parts.x[f].copy(), parts.P[f].copy()) for f in range(parts.x.shape[0])]
+
+
+def surface_probabilities(config: StmmaeConfig, state: StmmaeState) -> dict[str, float | None]:
+    """Each surface's marginal fault probability (the sum over the hypotheses that declare it
+    faulty) at the last sample; None before any sample."""
+    parts = state_parts(config, state)
+    if parts.samples_seen == 0.0:
+        return {s: None for s in config.model.surfaces}
+    return {
+        s: _finite(parts.decisions[h, kern.D_PROB]) for h, s in enumerate(config.model.surfaces)
+    }
 
 
 def probabilities(config: StmmaeConfig, state: StmmaeState) -> dict[str, float]:
     """Hypothesis probabilities at the last sample."""
-    lay = layout(config)
-    vals = state.vector[lay.probs : lay.probs + lay.nh]
+    vals = state_parts(config, state).probabilities
     return {h: float(v) for h, v in zip(config.hypotheses, vals, strict=True)}
 
 
@@ -612,6 +835,7 @@ def sample_output_names(config: StmmaeConfig) -> tuple[str, ...]:
         tuple(f"prob_{h}" for h in config.hypotheses)
         + tuple(f"state_{s}" for s in config.model.states)
         + tuple(f"deflection_{s}" for s in config.model.surfaces)
+        + tuple(f"fault_probability_{s}" for s in config.model.surfaces)
         + ("nis_nominal",)
     )
 
@@ -621,84 +845,124 @@ def _deg(value: float) -> float | None:
     return None if v is None else round(math.degrees(v), 6)
 
 
-def _fault_kind(swing_rad: float, config: StmmaeConfig) -> str:
-    return "oscillating" if swing_rad > math.radians(config.oscillation_swing_deg) else "stuck"
+FAULT_KINDS: dict[float, str] = {
+    kern.KIND_PENDING: "pending",
+    kern.KIND_STUCK: "stuck",
+    kern.KIND_OSCILLATING: "oscillating",
+}
+
+
+def _detail(
+    config: StmmaeConfig,
+    hyp: int,
+    code: float,
+    mean_rad: float,
+    swing_rad: float,
+    corr: float,
+    onset_s: float,
+    detected_s: float,
+) -> dict[str, Any]:
+    """Detail of a fault (events, diagnosis and status reasons share it, so they agree).
+
+    ``fault_kind`` is ``"pending"`` until the kind span closes (``fault_kind_window_s`` after
+    the start of the detection hold; a ``fault_classified`` event then gives the judgement),
+    ``"stuck"`` (with ``stuck_position_deg``) or ``"oscillating"``."""
+    kind = FAULT_KINDS[float(code)]
+    return {
+        "component": config.hypotheses[hyp],
+        "fault_kind": kind,
+        "stuck_position_deg": _deg(mean_rad) if kind == "stuck" else None,
+        "deflection_swing_deg": _deg(swing_rad),
+        "deflection_autocorrelation_min": _finite(corr),
+        "onset_s": _finite(onset_s),
+        "detected_s": _finite(detected_s),
+    }
 
 
 def _fault_detail(config: StmmaeConfig, hyp: int, d: FloatArray) -> dict[str, Any]:
     """Detail of an active fault from its decision fields."""
-    swing = kern.episode_swing(d.reshape(1, -1), 0)
-    kind = _fault_kind(swing, config)
-    mean = kern.episode_mean(d.reshape(1, -1), 0)
-    return {
-        "component": config.hypotheses[hyp],
-        "fault_kind": kind,
-        "stuck_position_deg": _deg(mean) if kind == "stuck" else None,
-        "deflection_swing_deg": _deg(swing),
-        "onset_s": _finite(d[kern.D_ONSET_T]),
-        "detected_s": _finite(d[kern.D_DETECTED_T]),
-    }
+    dec = d.reshape(1, -1)
+    return _detail(
+        config,
+        hyp,
+        d[kern.D_KIND],
+        kern.episode_mean(dec, 0),
+        kern.episode_swing(dec, 0),
+        d[kern.D_KIND_CORR],
+        d[kern.D_ONSET_T],
+        d[kern.D_DETECTED_T],
+    )
+
+
+EVENT_KINDS: dict[int, str] = {
+    kern.EV_DETECTED: "fault_detected",
+    kern.EV_CLASSIFIED: "fault_classified",
+    kern.EV_CLEARED: "fault_cleared",
+}
 
 
 def _event(row: FloatArray, config: StmmaeConfig) -> EstimatorEvent:
-    hyp = int(row[kern.EV_HYP])
-    kind = _fault_kind(float(row[kern.EV_SWING]), config)
-    detail: dict[str, Any] = {
-        "component": config.hypotheses[hyp],
-        "fault_kind": kind,
-        "stuck_position_deg": _deg(row[kern.EV_MEAN]) if kind == "stuck" else None,
-        "deflection_swing_deg": _deg(row[kern.EV_SWING]),
-        "onset_s": _finite(row[kern.EV_ONSET_T]),
-        "detected_s": _finite(row[kern.EV_DETECTED_T]),
-    }
-    if row[kern.EV_KIND] == kern.EV_CLEARED:
+    detail = _detail(
+        config,
+        int(row[kern.EV_HYP]),
+        row[kern.EV_FAULT_KIND],
+        row[kern.EV_MEAN],
+        row[kern.EV_SWING],
+        row[kern.EV_CORR],
+        row[kern.EV_ONSET_T],
+        row[kern.EV_DETECTED_T],
+    )
+    kind = EVENT_KINDS[int(row[kern.EV_KIND])]
+    if kind == "fault_detected":
+        detail["log_likelihood_ratio"] = _finite(round(float(row[kern.EV_LLR]), 3))
+    if kind == "fault_cleared":
         detail["cleared_s"] = _finite(row[kern.EV_CLEARED_T])
-        return EstimatorEvent(t_s=float(row[kern.EV_T]), kind="fault_cleared", detail=detail)
-    return EstimatorEvent(t_s=float(row[kern.EV_T]), kind="fault_detected", detail=detail)
+    return EstimatorEvent(t_s=float(row[kern.EV_T]), kind=kind, detail=detail)
 
 
 def _fault_reason(f: dict[str, Any]) -> str:
+    """Status reason of an active fault, from the same detail as its events."""
     if f["fault_kind"] == "stuck":
-        return f"fault: {f['component']} stuck at {f['stuck_position_deg']:.1f} deg"
-    return f"fault: {f['component']} oscillating, swing {f['deflection_swing_deg']:.1f} deg"
+        pos = f["stuck_position_deg"]
+        where = "unknown position" if pos is None else f"{pos:.1f} deg"
+        return f"fault: {f['component']} stuck at {where}"
+    if f["fault_kind"] == "oscillating":
+        return f"fault: {f['component']} oscillating, swing {f['deflection_swing_deg']:.1f} deg"
+    return f"fault: {f['component']} not following its command (stuck or oscillating: pending)"
 
 
 def active_faults(config: StmmaeConfig, state: StmmaeState) -> list[dict[str, Any]]:
     """Details of the faults active at the last sample."""
-    lay = layout(config)
-    out = []
-    for h in range(1, lay.nh):
-        d = state.vector[lay.decisions + (h - 1) * kern.D_LEN : lay.decisions + h * kern.D_LEN]
-        if d[kern.D_ACTIVE] == 1.0:
-            out.append(_fault_detail(config, h, d))
-    return out
+    decisions = state_parts(config, state).decisions
+    return [
+        _fault_detail(config, h + 1, d) for h, d in enumerate(decisions) if d[kern.D_ACTIVE] == 1.0
+    ]
 
 
 def status_report(config: StmmaeConfig, state: StmmaeState) -> StatusReport:
-    """ "alert" while a fault is active, "watch" while a fault hypothesis is above
+    """ "alert" while a fault is active, "watch" while a surface's fault probability is above
     ``watch_probability`` without being confirmed, else "ok"."""
     faults = active_faults(config, state)
     if faults:
         return StatusReport("alert", tuple(_fault_reason(f) for f in faults))
-    probs = probabilities(config, state)
     watch = [
-        f"{h} probability {p:.2f} above {config.watch_probability:g}, not confirmed"
-        for h, p in probs.items()
-        if h != NOMINAL and p > config.watch_probability
+        f"{s} fault probability {p:.2f} above {config.watch_probability:g}, not confirmed"
+        for s, p in surface_probabilities(config, state).items()
+        if p is not None and p > config.watch_probability
     ]
     return StatusReport("watch", tuple(watch)) if watch else StatusReport("ok")
 
 
 def diagnosis(config: StmmaeConfig, state: StmmaeState) -> Diagnosis:
-    """Probabilities, active faults and deflection estimates at the last sample."""
-    lay = layout(config)
-    defl = {}
-    for h, surface in enumerate(config.model.surfaces, start=1):
-        defl[surface] = _deg(state.vector[lay.filt + h * lay.filt_len + lay.na - 1])
+    """Probabilities (per hypothesis and per surface), active faults and deflection estimates
+    at the last sample."""
+    dec = state_parts(config, state).decisions
+    defl = {s: _deg(dec[h, kern.D_DEFL]) for h, s in enumerate(config.model.surfaces)}
     return Diagnosis(
         t_s=float(state.t_last_s),
         detail={
             "probabilities": {h: _finite(p) for h, p in probabilities(config, state).items()},
+            "surface_fault_probabilities": surface_probabilities(config, state),
             "active_faults": active_faults(config, state),
             "deflection_estimates_deg": defl,
             "variant": config.variant,
@@ -760,12 +1024,9 @@ def step(config: StmmaeConfig, state: StmmaeState, batch: Batch) -> tuple[Stmmae
             belong to this configuration.
     """
     names = sample_output_names(config)
-    lay = layout(config)
-    if state.vector.shape != (lay.length,):
-        raise EstimatorError(
-            f"state of length {state.vector.shape[0]} does not fit this configuration "
-            f"(expected {lay.length})"
-        )
+    if state.layout_version != STATE_VERSION:
+        state = StmmaeState(STATE_VERSION, state.t_last_s, _current_vector(config, state))
+    state_parts(config, state)  # raises if the state does not fit the configuration
     t = np.ascontiguousarray(batch.t_s, dtype=np.float64)
     n = int(t.shape[0])
     if n == 0:

@@ -52,8 +52,22 @@ CFG_WINDOW = 10  # health window length, samples
 CFG_SMOOTH_S = 11  # time constant of the smoothed deflection estimate
 CFG_MIN_ERR = 12  # smallest |deflection estimate - command| (rad) for a detection
 CFG_LIMIT = 13  # deflection estimates are clipped to +-CFG_LIMIT (rad) before smoothing
-CFG_KIND_WINDOW_S = 14  # span after detection over which the fault kind is judged
-CFG_LEN = 15
+CFG_KIND_WINDOW_S = 14  # span from the start of the detection hold over which the kind is judged
+CFG_REBASE = 15  # 1: on detection the other filters take the faulty surface's estimate as input
+CFG_CLEAR_DEFL = 16  # clearance band of |smoothed (deflection estimate - command)| (rad)
+CFG_CLEAR_SMOOTH_S = 17  # time constant of that smoothing
+CFG_MIN_LLR = 18  # smallest log-likelihood ratio (fault vs no-fault) summed over the hold
+CFG_OSC_CORR = 19  # autocorrelation level below which a deflection history is oscillating
+CFG_OSC_SWING = 20  # swing (rad) an oscillating fault must also exceed
+CFG_LEN = 21
+
+KIND_BLOCK_S = 0.05  # the kind test reads the deflection estimate as means over 0.05 s blocks
+KIND_BLOCKS = 200  # capacity of the block history: fault_kind_window_s <= 10 s
+KIND_MIN_LAG_S = 0.2  # shortest lag of the autocorrelation test (half period of 2.5 Hz)
+KIND_MIN_BLOCKS = 20  # a history shorter than 1 s leaves the kind undetermined
+KIND_PENDING = 0.0
+KIND_STUCK = 1.0
+KIND_OSCILLATING = 2.0
 
 # header of the state vector
 ST_N_SEEN = 0
@@ -75,7 +89,18 @@ D_SMOOTH_SET = 6
 D_EP_SUM = 7  # sum of w d
 D_EP_SUMSQ = 8  # sum of w d^2
 D_EP_N = 9  # sum of w
-D_LEN = 10
+D_CSMOOTH = 10  # smoothed (deflection estimate - command), rad, for the clearance test
+D_LLR = 11  # log-likelihood ratio fault vs no-fault summed over the current detection run
+D_KIND = 12  # KIND_PENDING, KIND_STUCK or KIND_OSCILLATING
+D_KIND_T0 = 13  # start of the kind span (start of the run that led to the detection)
+D_BLK_IDX = 14  # index of the block being filled (-1: none yet)
+D_BLK_SUM = 15  # sum of the estimates in that block
+D_BLK_N = 16  # their count
+D_KIND_CORR = 17  # the autocorrelation statistic the kind was judged on
+D_DEFL = 18  # latest deflection estimate (probability-weighted over the surface's filters), rad
+D_PROB = 19  # latest marginal fault probability of the surface
+D_LEN = 20
+D_TIMES = (D_ABOVE_T, D_ONSET_T, D_BELOW_T, D_DETECTED_T, D_KIND_T0)  # NaN when unset
 
 # health-window accumulators
 W_COUNT = 0
@@ -110,9 +135,13 @@ EV_DETECTED_T = 4
 EV_CLEARED_T = 5
 EV_SWING = 6  # twice the standard deviation of the smoothed deflection over the episode (rad)
 EV_MEAN = 7  # mean of the smoothed deflection over the episode (rad)
-EV_LEN = 8
+EV_FAULT_KIND = 8  # KIND_* at the time of the event
+EV_CORR = 9  # the kind test's autocorrelation statistic (NaN while pending)
+EV_LLR = 10  # log-likelihood ratio summed over the detection run
+EV_LEN = 11
 EV_DETECTED = 1
 EV_CLEARED = 2
+EV_CLASSIFIED = 3
 
 
 class BankArrays(NamedTuple):
@@ -139,6 +168,10 @@ class BankArrays(NamedTuple):
         euclid_weights: (p,) ``1 / R_jj``, the units of the Euclidean-norm likelihood.
         x_trim: (n,) trim state; u_trim: (m,) trim inputs; y_trim: (p,) ``H x*``.
         x0: (nh, na) initial states; p0: (nh, na, na) initial covariances.
+        slot_surface: (nh, na - n) int64: the surface (index among the monitored surfaces)
+            whose deflection each augmented state slot of a filter holds, -1 for none (the
+            no-fault filter has none, a single-fault filter one, a pair filter two).
+        floors: (nh,) probability floor of each hypothesis.
     """
 
     phi: FloatArray
@@ -165,6 +198,8 @@ class BankArrays(NamedTuple):
     y_trim: FloatArray
     x0: FloatArray
     p0: FloatArray
+    slot_surface: IntArray
+    floors: FloatArray
 
 
 class Layout(NamedTuple):
@@ -174,24 +209,41 @@ class Layout(NamedTuple):
     na: int
     p: int
     m: int
+    s: int  # monitored surfaces
     filt: int  # start of the first filter block
     filt_len: int  # length of one filter block: na + na*na + p*p + 1
     probs: int
     u_last: int
     decisions: int
+    kind_blocks: int  # (s, KIND_BLOCKS) block means of the deflection estimate (rad)
     window: int
     length: int
 
 
-def state_layout(nh: int, na: int, p: int, m: int) -> Layout:
-    """The state-vector layout of a bank."""
+def state_layout(nh: int, na: int, p: int, m: int, s: int) -> Layout:
+    """The state-vector layout of a bank of ``nh`` filters over ``s`` surfaces."""
     filt_len = na + na * na + p * p + 1
     filt = ST_HEADER
     probs = filt + nh * filt_len
     u_last = probs + nh
     decisions = u_last + m
-    window = decisions + (nh - 1) * D_LEN
-    return Layout(nh, na, p, m, filt, filt_len, probs, u_last, decisions, window, window + W_LEN)
+    kind_blocks = decisions + s * D_LEN
+    window = kind_blocks + s * KIND_BLOCKS
+    return Layout(
+        nh,
+        na,
+        p,
+        m,
+        s,
+        filt,
+        filt_len,
+        probs,
+        u_last,
+        decisions,
+        kind_blocks,
+        window,
+        window + W_LEN,
+    )
 
 
 # ----------------------------------------------------------------------------- linear algebra
@@ -283,6 +335,8 @@ def filter_step(
     work: FloatArray,
     mats: FloatArray,
     out2: FloatArray,
+    qx: FloatArray,
+    n_qx: int,
 ) -> int:
     """Advance filter ``f`` (its rows of ``xs`` (nh, na), ``ps`` (nh, na, na), ``vs``
     (nh, p, p), ``vflags`` (nh,)) by one sample; returns 0, or 1 when S was not positive
@@ -388,6 +442,14 @@ def filter_step(
         for i in range(na):
             for j in range(na):
                 pp[i, j] = amat[i, j] + bank.q[f, i, j]
+    # rebased inputs: each input taken at an estimate adds g g^T var to the prior covariance
+    # (``qx`` rows hold g sqrt(var) of the first ``n_qx`` such inputs)
+    for e in range(n_qx):
+        for i in range(na):
+            v = qx[e, i]
+            if v != 0.0:
+                for j in range(na):
+                    pp[i, j] += v * qx[e, j]
     if nv == 0:
         _accept_prior(f, xs, ps, xp, pp)
         out2[0] = 0.0
@@ -487,7 +549,7 @@ def _accept_prior(f: int, xs: FloatArray, ps: FloatArray, xp: FloatArray, pp: Fl
 
 # ----------------------------------------------------------------------------- bank
 @njit(cache=True, error_model="numpy")
-def _bayes(probs: FloatArray, ll: FloatArray, floor: float) -> None:
+def _bayes(probs: FloatArray, ll: FloatArray, floors: FloatArray) -> None:
     """``p_i <- p_i f_i / sum_j p_j f_j`` in the log domain, then the floor and renormalization.
     Hypotheses whose likelihood is not finite get zero weight (then the floor); if none is
     finite the probabilities are left unchanged."""
@@ -511,8 +573,8 @@ def _bayes(probs: FloatArray, ll: FloatArray, floor: float) -> None:
     total2 = 0.0
     for i in range(nh):
         v = probs[i] / total
-        if v < floor:
-            v = floor
+        if v < floors[i]:
+            v = floors[i]
         probs[i] = v
         total2 += v
     for i in range(nh):
@@ -569,13 +631,113 @@ def _write_event(
     row[EV_CLEARED_T] = t if kind == EV_CLEARED else np.nan
     row[EV_SWING] = episode_swing(dec, h)
     row[EV_MEAN] = episode_mean(dec, h)
+    row[EV_FAULT_KIND] = dec[h, D_KIND]
+    row[EV_CORR] = dec[h, D_KIND_CORR]
+    row[EV_LLR] = dec[h, D_LLR]
     return events
+
+
+@njit(cache=True, error_model="numpy")
+def _kind_add(
+    dec: FloatArray, kbuf: FloatArray, h: int, t: float, value: float, var: float
+) -> None:
+    """Add one deflection estimate to the kind span: the precision-weighted episode sums and the
+    history of 0.05 s block means (a data gap repeats the last block's mean)."""
+    _episode_add(dec, h, value, var)
+    idx = int(math.floor((t - dec[h, D_KIND_T0]) / KIND_BLOCK_S))
+    if idx >= KIND_BLOCKS:
+        return
+    cur = int(dec[h, D_BLK_IDX])
+    if idx != cur:
+        if cur >= 0 and dec[h, D_BLK_N] > 0.0:
+            mean = dec[h, D_BLK_SUM] / dec[h, D_BLK_N]
+            for b in range(cur, min(idx, KIND_BLOCKS)):
+                kbuf[h, b] = mean
+        dec[h, D_BLK_IDX] = idx
+        dec[h, D_BLK_SUM] = 0.0
+        dec[h, D_BLK_N] = 0.0
+    dec[h, D_BLK_SUM] += value
+    dec[h, D_BLK_N] += 1.0
+
+
+@njit(cache=True, error_model="numpy")
+def kind_correlation(x: FloatArray, nb: int) -> float:
+    """Smallest normalized autocorrelation of the first ``nb`` block means ``x`` over lags from
+    ``KIND_MIN_LAG_S`` to half the history:
+
+        r(L) = [sum_{i < nb - L} e_i e_{i+L} / (nb - L)] / [sum_i e_i^2 / nb],  e = x - mean(x)
+
+    A periodic deflection has r = -1 at half its period (sine or square wave); a constant one
+    seen through estimation noise and slow model-error drift has no such negative lobe (r stays
+    near 0 or positive, up to about -0.3 from the finite history). NaN when ``nb`` is too short
+    or the history has no variance."""
+    lo = int(math.ceil(KIND_MIN_LAG_S / KIND_BLOCK_S - 1e-9))
+    hi = nb // 2
+    if nb < KIND_MIN_BLOCKS or hi < lo:
+        return np.nan
+    mean = 0.0
+    for i in range(nb):
+        mean += x[i]
+    mean /= nb
+    var = 0.0
+    for i in range(nb):
+        var += (x[i] - mean) ** 2
+    var /= nb
+    if not var > 0.0:
+        return np.nan
+    best = np.inf
+    for lag in range(lo, hi + 1):
+        s = 0.0
+        for i in range(nb - lag):
+            s += (x[i] - mean) * (x[i + lag] - mean)
+        r = s / (nb - lag) / var
+        if r < best:
+            best = r
+    return best
+
+
+@njit(cache=True, error_model="numpy")
+def _judge_kind(cfg: FloatArray, dec: FloatArray, kbuf: FloatArray, h: int) -> None:
+    """Close the kind span: oscillating when the block history's autocorrelation has a negative
+    lobe below ``CFG_OSC_CORR`` and its swing exceeds ``CFG_OSC_SWING``; stuck otherwise; left
+    pending (undetermined) when the history is shorter than ``KIND_MIN_BLOCKS``."""
+    cur = int(dec[h, D_BLK_IDX])
+    nb = cur
+    if 0 <= cur < KIND_BLOCKS and dec[h, D_BLK_N] > 0.0:
+        kbuf[h, cur] = dec[h, D_BLK_SUM] / dec[h, D_BLK_N]
+        nb = cur + 1
+    nb = min(nb, KIND_BLOCKS)
+    corr = kind_correlation(kbuf[h], nb) if nb > 0 else np.nan
+    dec[h, D_KIND_CORR] = corr
+    if math.isnan(corr):
+        if nb >= KIND_MIN_BLOCKS:  # a flat history: constant deflection
+            dec[h, D_KIND] = KIND_STUCK
+        return
+    osc = corr < cfg[CFG_OSC_CORR] and episode_swing(dec, h) > cfg[CFG_OSC_SWING]
+    dec[h, D_KIND] = KIND_OSCILLATING if osc else KIND_STUCK
+
+
+@njit(cache=True, error_model="numpy")
+def _start_run(dec: FloatArray, h: int, t: float) -> None:
+    """A new run of the detection conditions starts at ``t``: reset its evidence and kind span."""
+    dec[h, D_ABOVE_T] = t
+    dec[h, D_LLR] = 0.0
+    dec[h, D_EP_N] = 0.0
+    dec[h, D_EP_SUM] = 0.0
+    dec[h, D_EP_SUMSQ] = 0.0
+    dec[h, D_KIND] = KIND_PENDING
+    dec[h, D_KIND_T0] = t
+    dec[h, D_BLK_IDX] = -1.0
+    dec[h, D_BLK_SUM] = 0.0
+    dec[h, D_BLK_N] = 0.0
+    dec[h, D_KIND_CORR] = np.nan
 
 
 @njit(cache=True, error_model="numpy")
 def _decide(
     cfg: FloatArray,
     dec: FloatArray,
+    kbuf: FloatArray,
     h: int,
     t: float,
     dt: float,
@@ -584,50 +746,73 @@ def _decide(
     defl_var: float,
     cmd: float,
     a_smooth: float,
+    a_clear: float,
+    llr: float,
 ) -> int:
-    """Detection and clearance logic of one fault hypothesis at one sample; returns 0, or
-    ``EV_DETECTED``/``EV_CLEARED`` (the caller writes the event from ``dec[h]``; after a clearance
-    the episode fields are reset by :func:`reset_after_clearance`)."""
+    """Detection, classification and clearance of one surface at one sample; returns 0 or
+    ``EV_DETECTED``/``EV_CLASSIFIED``/``EV_CLEARED`` (the caller writes the event from
+    ``dec[h]``; after a clearance it calls :func:`reset_after_clearance`).
+
+    Detection needs, held together for ``CFG_HOLD_S``: the probability above ``CFG_DETECT_P``,
+    the smoothed deflection estimate more than ``CFG_MIN_ERR`` from the command, and at the end
+    the log-likelihood ratio against the no-fault filter summed over the run at least
+    ``CFG_MIN_LLR``. Clearance (hysteresis): the smoothed difference between deflection estimate
+    and command inside ``CFG_CLEAR_DEFL`` (the surface follows its command again) and, unless
+    the bank is rebased (the probability then no longer compares with the command), the
+    probability below ``CFG_CLEAR_P``, together for ``CFG_CLEAR_HOLD_S``."""
     lim = cfg[CFG_LIMIT]
     defl = min(max(defl, -lim), lim)
     if dec[h, D_SMOOTH_SET] == 0.0 or not dt > 0.0:
         dec[h, D_SMOOTH] = defl
+        dec[h, D_CSMOOTH] = defl - cmd
         dec[h, D_SMOOTH_SET] = 1.0
     else:
         dec[h, D_SMOOTH] += a_smooth * (defl - dec[h, D_SMOOTH])
+        dec[h, D_CSMOOTH] += a_clear * (defl - cmd - dec[h, D_CSMOOTH])
     active = dec[h, D_ACTIVE] == 1.0
     if prob > cfg[CFG_ONSET_P]:
         if math.isnan(dec[h, D_ONSET_T]):
             dec[h, D_ONSET_T] = t
     elif not active:
         dec[h, D_ONSET_T] = np.nan
-    holds = prob > cfg[CFG_DETECT_P]
     if not active:
-        if holds and abs(dec[h, D_SMOOTH] - cmd) > cfg[CFG_MIN_ERR]:
+        holds = prob > cfg[CFG_DETECT_P] and abs(dec[h, D_SMOOTH] - cmd) > cfg[CFG_MIN_ERR]
+        if holds:
             if math.isnan(dec[h, D_ABOVE_T]):
-                dec[h, D_ABOVE_T] = t
-                dec[h, D_EP_N] = 0.0
-                dec[h, D_EP_SUM] = 0.0
-                dec[h, D_EP_SUMSQ] = 0.0
-            _episode_add(dec, h, defl, defl_var)
-            if t - dec[h, D_ABOVE_T] >= cfg[CFG_HOLD_S]:
+                _start_run(dec, h, t)
+            if math.isfinite(llr):
+                dec[h, D_LLR] += llr
+            _kind_add(dec, kbuf, h, t, defl, defl_var)
+            if t - dec[h, D_ABOVE_T] >= cfg[CFG_HOLD_S] and dec[h, D_LLR] >= cfg[CFG_MIN_LLR]:
                 dec[h, D_ACTIVE] = 1.0
                 dec[h, D_DETECTED_T] = t
                 dec[h, D_BELOW_T] = np.nan
-                return 1
+                return EV_DETECTED
         else:
             dec[h, D_ABOVE_T] = np.nan
         return 0
-    if holds and t - dec[h, D_DETECTED_T] <= cfg[CFG_KIND_WINDOW_S]:
-        _episode_add(dec, h, defl, defl_var)
-    if prob < cfg[CFG_CLEAR_P]:
+    code = 0
+    if dec[h, D_KIND] == KIND_PENDING and dec[h, D_BLK_IDX] < KIND_BLOCKS:
+        if t - dec[h, D_KIND_T0] < cfg[CFG_KIND_WINDOW_S]:
+            _kind_add(dec, kbuf, h, t, defl, defl_var)
+        else:
+            _judge_kind(cfg, dec, kbuf, h)
+            dec[h, D_BLK_IDX] = KIND_BLOCKS  # span closed
+            code = EV_CLASSIFIED
+    back = abs(dec[h, D_CSMOOTH]) < cfg[CFG_CLEAR_DEFL]
+    if cfg[CFG_REBASE] == 0.0:
+        back = back and prob < cfg[CFG_CLEAR_P]
+    if back:
         if math.isnan(dec[h, D_BELOW_T]):
             dec[h, D_BELOW_T] = t
         if t - dec[h, D_BELOW_T] >= cfg[CFG_CLEAR_HOLD_S]:
-            return 2
+            if dec[h, D_BLK_IDX] < KIND_BLOCKS:
+                _judge_kind(cfg, dec, kbuf, h)
+                dec[h, D_BLK_IDX] = KIND_BLOCKS
+            return EV_CLEARED
     else:
         dec[h, D_BELOW_T] = np.nan
-    return 0
+    return code
 
 
 @njit(cache=True, error_model="numpy")
@@ -641,6 +826,10 @@ def reset_after_clearance(dec: FloatArray, h: int) -> None:
     dec[h, D_EP_N] = 0.0
     dec[h, D_EP_SUM] = 0.0
     dec[h, D_EP_SUMSQ] = 0.0
+    dec[h, D_KIND] = KIND_PENDING
+    dec[h, D_KIND_T0] = np.nan
+    dec[h, D_BLK_IDX] = -1.0
+    dec[h, D_KIND_CORR] = np.nan
 
 
 @njit(cache=True, error_model="numpy")
@@ -678,17 +867,19 @@ def bank_batch(
         t: sample times, shape (k,).
         y: measurements, shape (p, k); NaN = missing.
         u: inputs (commands), shape (m, k); NaN = hold the last valid value.
-        surface_inputs: input index of each monitored surface, shape (nh - 1,).
+        surface_inputs: input index of each monitored surface, shape (s,).
 
     Returns:
-        ``(samples, windows, events, status)``: ``samples`` is (nh + n + (nh - 1) + 1, k):
-        probabilities, blended states, deflection estimates, NIS of the no-fault filter;
+        ``(samples, windows, events, status)``: ``samples`` is (nh + n + 2 s + 1, k):
+        hypothesis probabilities, blended states, deflection estimates, marginal fault
+        probabilities of the surfaces, NIS of the no-fault filter;
         ``windows``/``events`` are row arrays (``WIN_LEN``/``EV_LEN`` columns); ``status`` is 0,
         or -1 when the times are not strictly increasing (``st`` is then left untouched).
     """
     nh, na = arrays.x0.shape
-    n = na - 1
-    samples = np.empty((nh + n + (nh - 1) + 1, t.shape[0]))
+    n = na - arrays.slot_surface.shape[1]
+    ns = surface_inputs.shape[0]
+    samples = np.empty((nh + n + 2 * ns + 1, t.shape[0]))
     windows, events, status = _bank_kernel(cfg, arrays, st, t, y, u, surface_inputs, samples)
     return samples, windows, events, status
 
@@ -752,7 +943,7 @@ def _bank_kernel(
     """The compiled loop of :func:`bank_batch`."""
     k_len = t.shape[0]
     nh, na = bank.offset.shape
-    n = na - 1
+    n = na - bank.slot_surface.shape[1]
     p = bank.r.shape[0]
     m = u.shape[0]
     for k in range(1, k_len):
@@ -762,7 +953,10 @@ def _bank_kernel(
     lay_probs = ST_HEADER + nh * flen
     lay_u = lay_probs + nh
     lay_dec = lay_u + m
-    lay_win = lay_dec + (nh - 1) * D_LEN
+    ns = surface_inputs.shape[0]
+    n_slots = bank.slot_surface.shape[1]
+    lay_kind = lay_dec + ns * D_LEN
+    lay_win = lay_kind + ns * KIND_BLOCKS
     hw = cfg[CFG_WINDOW]
     windows = np.empty((int(k_len // hw) + 1, WIN_LEN))
     events = np.empty((8, EV_LEN))
@@ -773,7 +967,19 @@ def _bank_kernel(
     rho = cfg[CFG_RHO]
     beta = cfg[CFG_BETA]
     xs, ps, vs, vflags = _unpack(st, nh, na, p)
-    dec = st[lay_dec : lay_dec + (nh - 1) * D_LEN].copy().reshape((nh - 1, D_LEN))
+    dec = st[lay_dec : lay_dec + ns * D_LEN].copy().reshape((ns, D_LEN))
+    kbuf = st[lay_kind:lay_win].copy().reshape((ns, KIND_BLOCKS))
+    rebase = cfg[CFG_REBASE] != 0.0
+    du_f = np.empty(m)
+    qx = np.zeros((max(ns, 1), na))
+    # per surface: marginal probability, weighted deflection and variance, best log-likelihood
+    # of the filters holding it and of those not holding it
+    pm = np.empty(ns)
+    dsum = np.empty(ns)
+    vsum = np.empty(ns)
+    ll_in = np.empty(ns)
+    ll_out = np.empty(ns)
+    best_in = np.full(ns, -1, dtype=np.int64)
     probs = st[lay_probs : lay_probs + nh]
     u_last = st[lay_u : lay_u + m]
     wacc = st[lay_win : lay_win + W_LEN]
@@ -802,6 +1008,27 @@ def _bank_kernel(
                 nv += 1
         fails = 0
         for f in range(nh):
+            # rebased bank: every other filter takes an active fault's surface at its own
+            # filter's estimate (previous posterior), not at its command
+            for j in range(m):
+                du_f[j] = du[j]
+            n_qx = 0
+            if rebase:
+                for g in range(ns):
+                    if dec[g, D_ACTIVE] != 1.0:
+                        continue
+                    own = False
+                    for e in range(n_slots):
+                        if bank.slot_surface[f, e] == g:
+                            own = True
+                    if own:
+                        continue
+                    col = surface_inputs[g]
+                    du_f[col] = dec[g, D_SMOOTH] - bank.u_trim[col]
+                    sd = math.sqrt(max(ps[best_in[g], n, n], 0.0)) if best_in[g] >= 0 else 0.0
+                    for i in range(n):
+                        qx[n_qx, i] = bank.gin[0, i, col] * sd
+                    n_qx += 1
             fails += filter_step(
                 f,
                 bank,
@@ -809,7 +1036,7 @@ def _bank_kernel(
                 ps,
                 vs,
                 vflags,
-                du,
+                du_f,
                 ytil,
                 valid,
                 nv,
@@ -820,13 +1047,15 @@ def _bank_kernel(
                 work,
                 mats,
                 out2,
+                qx,
+                n_qx,
             )
             ll[f] = out2[0] if not math.isnan(out2[0]) else -np.inf
             if f == 0:
                 nis0 = out2[1] / nv if nv > 0 else np.nan
         st[ST_COV_FAIL] += fails
         if nv > 0:
-            _bayes(probs, ll, cfg[CFG_FLOOR])
+            _bayes(probs, ll, bank.floors)
         # per-sample outputs
         row = 0
         for f in range(nh):
@@ -840,25 +1069,67 @@ def _bank_kernel(
             row += 1
         dt = tk - st[ST_T_PREV] if st[ST_N_SEEN] > 0.0 else 0.0
         a_smooth = 1.0 - math.exp(-dt / cfg[CFG_SMOOTH_S])
+        a_clear = 1.0 - math.exp(-dt / cfg[CFG_CLEAR_SMOOTH_S])
         any_active = False
         max_fault = -1.0
         max_hyp = 0
-        for h in range(nh - 1):
-            defl = xs[h + 1, n]
+        for g in range(ns):
+            pm[g] = 0.0
+            dsum[g] = 0.0
+            vsum[g] = 0.0
+            ll_in[g] = -np.inf
+            ll_out[g] = -np.inf
+            best_in[g] = -1
+        for f in range(nh):
+            for g in range(ns):
+                slot = -1
+                for e in range(n_slots):
+                    if bank.slot_surface[f, e] == g:
+                        slot = n + e
+                if slot >= 0:
+                    pm[g] += probs[f]
+                    dsum[g] += probs[f] * xs[f, slot]
+                    vsum[g] += probs[f] * ps[f, slot, slot]
+                    if ll[f] > ll_in[g] or best_in[g] < 0:
+                        ll_in[g] = ll[f]
+                        best_in[g] = f
+                elif ll[f] > ll_out[g]:
+                    ll_out[g] = ll[f]
+        for h in range(ns):
+            defl = dsum[h] / pm[h]
             samples[row, k] = defl
+            samples[row + ns, k] = pm[h]
             row += 1
+            dec[h, D_DEFL] = defl
+            dec[h, D_PROB] = pm[h]
             cmd = u_last[surface_inputs[h]]
-            code = _decide(cfg, dec, h, tk, dt, probs[h + 1], defl, ps[h + 1, n, n], cmd, a_smooth)
+            llr = ll_in[h] - ll[0] if nv > 0 else 0.0
+            code = _decide(
+                cfg,
+                dec,
+                kbuf,
+                h,
+                tk,
+                dt,
+                pm[h],
+                defl,
+                vsum[h] / pm[h],
+                cmd,
+                a_smooth,
+                a_clear,
+                llr,
+            )
             if code != 0:
                 events = _write_event(events, n_ev, tk, float(code), dec, h)
                 n_ev += 1
-                if code == 2:
+                if code == EV_CLEARED:
                     reset_after_clearance(dec, h)
             if dec[h, D_ACTIVE] == 1.0:
                 any_active = True
-            if probs[h + 1] > max_fault:
-                max_fault = probs[h + 1]
+            if pm[h] > max_fault:
+                max_fault = pm[h]
                 max_hyp = h + 1
+        row += ns
         samples[row, k] = nis0
         # health window
         if wacc[W_COUNT] == 0.0:
@@ -881,5 +1152,6 @@ def _bank_kernel(
         st[ST_T_PREV] = tk
         st[ST_N_SEEN] += 1.0
     _pack(st, xs, ps, vs, vflags)
-    st[lay_dec : lay_dec + (nh - 1) * D_LEN] = dec.ravel()
+    st[lay_dec : lay_dec + ns * D_LEN] = dec.ravel()
+    st[lay_kind:lay_win] = kbuf.ravel()
     return windows[:n_win].copy(), events[:n_ev].copy(), 0

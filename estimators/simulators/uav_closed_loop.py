@@ -94,6 +94,34 @@ class SurfaceFault:
         return self.kind != "stuck"
 
 
+@dataclass(frozen=True)
+class Manoeuvre:
+    """A change of the autopilot's heading and altitude references, ramped linearly over
+    ``[start_s, start_s + duration_s]`` (a coordinated turn and/or a climb or descent); the
+    references then hold their new values.
+
+    Attributes:
+        start_s: start of the ramp (stream time, s).
+        duration_s: ramp length (s).
+        heading_change_deg: heading change (positive: turn right).
+        altitude_change_m: altitude change (positive: climb).
+    """
+
+    start_s: float
+    duration_s: float
+    heading_change_deg: float = 0.0
+    altitude_change_m: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not self.duration_s > 0.0:
+            raise ValueError("duration_s must be positive")
+
+    def offsets(self, t_s: float) -> tuple[float, float]:
+        """``(heading change rad, altitude change m)`` reached at ``t_s``."""
+        frac = min(max((t_s - self.start_s) / self.duration_s, 0.0), 1.0)
+        return math.radians(self.heading_change_deg) * frac, self.altitude_change_m * frac
+
+
 PAPER_FAULT_SCHEDULE: tuple[SurfaceFault, ...] = (
     SurfaceFault("aileron_left", 10.0, 40.0, "stuck", position_deg=-15.0),
     SurfaceFault("aileron_right", 70.0, 100.0, "square", center_deg=0.0, amplitude_deg=15.0),
@@ -231,6 +259,7 @@ def simulate_flight(
     servo_time_constant_s: float = 0.02,
     surface_limit_deg: float = 30.0,
     noise_scale: float = 1.0,
+    manoeuvres: Sequence[Manoeuvre] = (),
 ) -> tuple[FloatArray, dict[str, FloatArray], FlightTruth]:
     """Fly the closed loop from trim and return ``(t_s, channels, truth)``.
 
@@ -243,6 +272,8 @@ def simulate_flight(
         servo_time_constant_s: first-order lag of each surface (0: none).
         surface_limit_deg: command and deflection limit.
         noise_scale: multiplies the sensor noise standard deviations (0: noise-free).
+        manoeuvres: heading and altitude reference changes (:class:`Manoeuvre`; none: the
+            autopilot holds the initial heading and altitude).
 
     Returns:
         ``t_s`` (n,); ``channels``: :data:`CHANNELS` -> (n,) float64 (measured channels in rad,
@@ -271,6 +302,10 @@ def simulate_flight(
     for k in range(n):
         z = _ap_state(x)
         err = z - z_ref
+        for man in manoeuvres:
+            d_psi, d_h = man.offsets(t[k])
+            err[8] -= d_psi
+            err[9] -= d_h
         cmd4 = u_trim4 - ap.gain @ np.concatenate([err, integ])
         cmd4[:3] = np.clip(cmd4[:3], -lim, lim)
         cmd4[3] = min(max(cmd4[3], 0.0), 1.0)

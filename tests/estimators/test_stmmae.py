@@ -6,6 +6,7 @@ from __future__ import annotations
 import copy
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -73,7 +74,7 @@ def filterpy_bank(config):
 
 
 def bayes(probs, loglik, floor):
-    """The seed's recursion with the floor, in plain numpy."""
+    """The seed's recursion with the floor (one per hypothesis), in plain numpy."""
     w = probs * np.exp(loglik - loglik.max())
     w = w / w.sum()
     w = np.maximum(w, floor)
@@ -126,7 +127,7 @@ def test_emmae_bank_matches_filterpy_and_the_bayes_recursion(flight) -> None:
             kf.update(y)
             # log-likelihood from the innovation and S (filterpy#260: not from update())
             loglik[f] = logpdf(kf.y, cov=kf.S)
-        probs = bayes(probs, loglik, config.probability_floor)
+        probs = bayes(probs, loglik, config.arrays.floors)
         if k % 50 == 0 or 795 <= k <= 830:
             for (x, pm), kf in zip(state_slices(config, state), bank, strict=True):
                 # same equations, different association (Joseph form in filterpy):
@@ -166,10 +167,7 @@ def test_strong_tracking_matches_a_numpy_reference(flight, variant) -> None:
             )
             for f, (x, pm) in enumerate(state_slices(config, state)):
                 xs[f], ps[f] = x, pm
-            lay = stmmae.layout(config)
-            for f in range(nh):
-                off = lay.filt + f * lay.filt_len + lay.na + lay.na * lay.na
-                vs[f] = state.vector[off : off + lay.p * lay.p].reshape(lay.p, lay.p).copy()
+            vs[:] = stmmae.state_parts(config, state).V
         state, _ = stmmae.step(config, state, batch)
         y, u = measured(config, ch, k)
         for f in range(nh):
@@ -218,15 +216,30 @@ def test_probability_floor_and_normalization(flight) -> None:
     _, s, _, _, _ = run(config, t, ch)
     probs = np.array([s[f"prob_{h}"] for h in config.hypotheses])
     np.testing.assert_allclose(probs.sum(axis=0), 1.0, rtol=1e-12)
-    # floored then renormalized: never below floor / (1 + (number of hypotheses) * floor)
-    assert probs.min() >= config.probability_floor / (1 + 6 * config.probability_floor) - 1e-15
+    # floored then renormalized: never below floor / (1 + sum of the floors)
+    floors = config.arrays.floors
+    assert np.all(probs.min(axis=1) >= floors / (1 + floors.sum()) - 1e-15)
+    # a surface's fault probability is the sum over the hypotheses that declare it faulty
+    for i, surface in enumerate(config.model.surfaces):
+        members = [
+            h
+            for h, mem in zip(config.hypotheses, stmmae.hypothesis_members(config), strict=True)
+            if i in mem
+        ]
+        assert len(members) == len(SURFACES)  # its single filter and four pairs
+        np.testing.assert_allclose(
+            s[f"fault_probability_{surface}"], sum(s[f"prob_{h}"] for h in members), rtol=1e-12
+        )
 
 
 # ----------------------------------------------------------------------------- simulator truth
 @pytest.mark.parametrize("variant", ["improved", "emmae"])
 def test_isolates_a_stuck_aileron_against_truth(flight, variant) -> None:
     t, ch, truth = flight
-    config = stmmae.parse_config({"variant": variant, "health_window_samples": 100})
+    # the plain Kalman bank as the seed ran it: one filter per surface, no pair hypotheses
+    pairs = variant != "emmae"
+    raw = {"variant": variant, "health_window_samples": 100, "pair_hypotheses": pairs}
+    config = stmmae.parse_config(raw)
     _, s, health, events, out = run(config, t, ch)
     detected = [e for e in events if e.kind == "fault_detected"]
     assert detected, "no detection"
@@ -459,12 +472,16 @@ def test_covariance_stays_symmetric_positive_definite(variant) -> None:
         channels |= {inp.channel: u[:, i] for i, inp in enumerate(config.model.inputs)}
         state, out = stmmae.step(config, state, Batch(t, channels))
         assert all(h.indicators["covariance_failures"] == 0.0 for h in out.health)
-        for _, pm in state_slices(config, state):
+        n = len(config.model.states)
+        for (_, pm), slots in zip(
+            state_slices(config, state), config.arrays.slot_surface, strict=True
+        ):
             assert np.array_equal(pm, pm.T)
-            low = np.linalg.eigvalsh(pm)
-            assert low[1] > 0.0  # index 0 is the no-fault filter's unused state (exact zero)
+            used = n + int(np.sum(slots >= 0))  # unused deflection slots stay exactly zero
+            assert np.all(pm[used:] == 0.0)
+            assert np.linalg.eigvalsh(pm[:used, :used])[0] > 0.0
             assert np.all(np.isfinite(pm))
-    assert state.vector[1] == 0.0  # ST_COV_FAIL: no non-positive-definite S over the run
+    assert stmmae.state_parts(config, state).covariance_failures == 0.0  # S always PD
 
 
 # ----------------------------------------------------------------------------- configuration
@@ -475,7 +492,10 @@ def test_config_defaults_round_trip() -> None:
     assert d["variant"] == "improved" and d["likelihood"] == "gaussian"
     assert d["weakening_factor"] == "auto"
     assert stmmae.parse_config(d) == config
-    assert config.hypotheses == ("nominal", *SURFACES)
+    assert config.hypotheses[:6] == ("nominal", *SURFACES)
+    assert len(config.hypotheses) == 16 and "aileron_left+rudder" in config.hypotheses
+    single = stmmae.parse_config({"pair_hypotheses": False})
+    assert single.hypotheses == ("nominal", *SURFACES)
     assert stmmae.required_channels(config)[:6] == ("p", "q", "r", "alpha", "beta", "airspeed")
     custom = stmmae.parse_config(
         {"variant": "emmae", "likelihood": "euclidean", "hold_s": 0.3, "weakening_factor": 2.0}
@@ -524,7 +544,9 @@ def _model(**changes):
 def test_config_errors_name_the_field(raw, field) -> None:
     with pytest.raises(ConfigError) as info:
         stmmae.parse_config(raw)
-    assert str(info.value).startswith(field)
+    message = str(info.value)
+    assert message.startswith("stmmae: ")
+    assert field in message, message
 
 
 def test_registry_and_warm_up() -> None:
@@ -554,3 +576,213 @@ def test_episode_statistics_are_precision_weighted() -> None:
     assert kern.episode_swing(plain, 0) == pytest.approx(0.2)
     kern._episode_add(plain, 0, 1.0, np.inf)  # not finite: ignored
     assert kern.episode_mean(plain, 0) == pytest.approx(0.1)
+
+
+# ----------------------------------------------------------------------------- contract
+DATA = Path(__file__).parent / "data"
+
+
+@pytest.mark.parametrize("version", [1, 2])
+def test_older_state_fixtures_load_and_step(version) -> None:
+    """States dumped by earlier code (version 1: equal-weight episode sums; version 2) load,
+    keep their filters and probabilities, and step on: the stuck right aileron of the fixture's
+    flight (6 s, stuck at +12 deg from 2 s) stays the active fault."""
+    blob = (DATA / f"stmmae_state_v{version}.bin").read_bytes()
+    assert json.loads(blob)["version"] == version
+    config = stmmae.parse_config({"health_window_samples": 250})
+    state = stmmae.load_state(blob)
+    assert state.version == stmmae.STATE_VERSION
+    doc = json.loads(blob)
+    assert state.t_last_s == float.fromhex(doc["t_last_s"])
+    parts = stmmae.state_parts(config, state)
+    assert parts.probabilities.sum() == pytest.approx(1.0)
+    assert [f["component"] for f in stmmae.active_faults(config, state)] == ["aileron_right"]
+    t, ch, _ = simulate_flight(8.0, faults=ONE_FAULT_EARLY, seed=5)
+    keep = t > state.t_last_s
+    state, out = stmmae.step(
+        config, state, Batch(t_s=t[keep], channels={k: v[keep] for k, v in ch.items()})
+    )
+    assert state.version == stmmae.STATE_VERSION
+    assert out.status is not None and out.status.status == "alert"
+    assert "aileron_right" in out.status.reasons[0]
+
+
+ONE_FAULT_EARLY = (SurfaceFault("aileron_right", 2.0, 20.0, "stuck", position_deg=12.0),)
+
+
+def test_unknown_state_version_raises() -> None:
+    blob = (DATA / "stmmae_state_v2.bin").read_bytes()
+    for bad in (0, 99):
+        with pytest.raises(StateVersionError, match=str(bad)):
+            stmmae.load_state(blob.replace(b'"version":2', f'"version":{bad}'.encode()))
+
+
+def test_config_model_schema_and_named_state_parts() -> None:
+    schema = stmmae.CONFIG_MODEL.model_json_schema()
+    props = schema["properties"]
+    assert "deg" in props["min_deflection_error_deg"]["description"]
+    assert props["hold_s"]["default"] == 0.1
+    config = stmmae.parse_config({})
+    parts = stmmae.state_parts(config, stmmae.initial_state(config))
+    nh, na = config.arrays.x0.shape
+    assert parts.x.shape == (nh, na) and parts.P.shape == (nh, na, na)
+    assert parts.decisions.shape == (len(SURFACES), kern.D_LEN)
+    assert not parts.x.flags.writeable
+
+
+# ----------------------------------------------------------------------------- decision logic
+def _decide_run(config, probs, defl_deg, cmd_deg, llrs, dt=0.01):
+    """Feed one surface's decision logic a sequence of (probability, deflection, command,
+    log-likelihood ratio) samples; return the codes raised and the decision fields."""
+    cfg = config.kernel_vector
+    dec = np.zeros((1, kern.D_LEN))
+    for idx in kern.D_TIMES:
+        dec[0, idx] = np.nan
+    dec[0, kern.D_BLK_IDX] = -1.0
+    kbuf = np.zeros((1, kern.KIND_BLOCKS))
+    a_s = 1.0 - math.exp(-dt / config.deflection_smoothing_s)
+    a_c = 1.0 - math.exp(-dt / config.clear_smoothing_s)
+    codes = []
+    for k, (p, d, c, llr) in enumerate(zip(probs, defl_deg, cmd_deg, llrs, strict=True)):
+        code = kern._decide(
+            cfg,
+            dec,
+            kbuf,
+            0,
+            k * dt,
+            dt if k else 0.0,
+            p,
+            math.radians(d),
+            1e-4,
+            math.radians(c),
+            a_s,
+            a_c,
+            llr,
+        )
+        if code:
+            codes.append((round(k * dt, 2), code))
+        if code == kern.EV_CLEARED:
+            kern.reset_after_clearance(dec, 0)
+    return codes, dec
+
+
+def test_detection_needs_likelihood_ratio_evidence_over_the_hold() -> None:
+    """Probability above the level and the deflection off its command for the hold time are
+    not enough: the log-likelihood ratio summed over the run must reach its level too."""
+    config = stmmae.parse_config({})
+    n = 100
+    probs, defl, cmd = [0.95] * n, [6.0] * n, [0.0] * n
+    weak = [0.04] * n  # 0.04 nat per sample: 4 nats over 1 s, below the 6-nat level
+    codes, _ = _decide_run(config, probs, defl, cmd, weak)
+    assert codes == []
+    codes, _ = _decide_run(config, probs, defl, cmd, [1.0] * n)  # 1 nat per sample
+    assert codes[0] == (config.hold_s, kern.EV_DETECTED)
+    no_gate = stmmae.parse_config({"min_log_likelihood_ratio": 0.0})
+    codes, _ = _decide_run(no_gate, probs, defl, cmd, weak)
+    assert codes and codes[0][1] == kern.EV_DETECTED
+    # and the deflection gate: a surface at its command is not in fault, whatever the odds
+    codes, _ = _decide_run(config, probs, [0.2] * n, cmd, [0.5] * n)
+    assert codes == []
+
+
+def test_clearance_hysteresis_keeps_a_fault_through_short_dips() -> None:
+    """A fault whose probability dips below the clearance level for 0.3 s while the surface
+    estimate stays off its command is not cleared (it was, with the former 0.1 s probability-only
+    rule); it is cleared once the surface follows its command with a low probability for the
+    clearance hold."""
+    config = stmmae.parse_config({})
+    rise = [(0.95, 8.0, 0.0, 1.0)] * 50
+    dip = [(0.01, 8.0, 0.0, -1.0)] * 30
+    back = [(0.95, 8.0, 0.0, 1.0)] * 50
+    healthy = [(0.01, 0.3, 0.0, -1.0)] * 300
+    seq = rise + dip + back + dip + back
+    codes, dec = _decide_run(config, *zip(*seq, strict=True))
+    assert [c for _, c in codes] == [kern.EV_DETECTED]
+    assert dec[0, kern.D_ACTIVE] == 1.0
+    old = stmmae.parse_config({"clear_hold_s": 0.1, "clear_deflection_deg": 90.0})
+    codes, _ = _decide_run(old, *zip(*seq, strict=True))
+    assert [c for _, c in codes].count(kern.EV_DETECTED) == 3  # cleared and re-detected twice
+    codes, _ = _decide_run(config, *zip(*(seq + healthy), strict=True))
+    assert [c for _, c in codes] == [kern.EV_DETECTED, kern.EV_CLEARED]
+    # cleared 1 s (clear hold) plus the smoothing of the deflection error after the fault ends
+    t_end = len(seq) * 0.01
+    assert t_end + config.clear_hold_s < codes[1][0] < t_end + config.clear_hold_s + 1.5
+
+
+def test_kind_correlation_separates_oscillation_from_noise_and_drift() -> None:
+    """The autocorrelation statistic: -1 at half the period of a sine or square wave; a constant
+    seen through noise and a slow drift stays above the oscillation level."""
+    block = kern.KIND_BLOCK_S
+    t = np.arange(100) * block  # 5 s of 0.05 s blocks
+    rng = np.random.default_rng(3)
+    level = stmmae.parse_config({}).oscillation_correlation
+    for period in (0.6, 1.5, 4.0):
+        sine = np.sin(2 * np.pi * t / period) + 0.3 * rng.standard_normal(t.size)
+        square = np.sign(np.sin(2 * np.pi * t / period + 0.1))
+        assert kern.kind_correlation(sine, t.size) < -0.6, period
+        assert kern.kind_correlation(square, t.size) < -0.6, period
+    for seed in range(20):
+        r = np.random.default_rng(seed)
+        noise = r.standard_normal(t.size) + 0.2 * t  # white noise plus a drift
+        assert kern.kind_correlation(noise, t.size) > level, seed
+    assert math.isnan(kern.kind_correlation(np.ones(50), 50))  # flat: no variance
+    assert math.isnan(kern.kind_correlation(t, kern.KIND_MIN_BLOCKS - 1))  # too short
+
+
+ELEVATOR_FAULTS = {
+    "stuck": SurfaceFault("elevator_left", 4.0, 30.0, "stuck", position_deg=-14.0),
+    "oscillating": SurfaceFault(
+        "elevator_right", 4.0, 30.0, "square", center_deg=-6.0, amplitude_deg=3.0, period_s=1.5
+    ),
+}
+
+
+@pytest.mark.parametrize("kind", ["stuck", "oscillating"])
+def test_elevator_fault_kind_and_status_reason_agree(kind) -> None:
+    """A stuck elevator is reported stuck (the former swing rule called it oscillating) and an
+    oscillating one oscillating; the detection event says pending, the classification event
+    gives the kind, and the status reason, the diagnosis and the clearance event say the same."""
+    fault = ELEVATOR_FAULTS[kind]
+    t, ch, _ = simulate_flight(12.0, faults=(fault,), seed=21)
+    config = stmmae.parse_config({})
+    state, s, _, events, out = run(config, t, ch)
+    mine = [e for e in events if e.detail["component"] == fault.surface]
+    assert [e.kind for e in mine[:2]] == ["fault_detected", "fault_classified"]
+    assert mine[0].detail["fault_kind"] == "pending"
+    assert mine[0].detail["log_likelihood_ratio"] >= config.min_log_likelihood_ratio
+    assert mine[1].detail["fault_kind"] == kind
+    active = {f["component"]: f for f in stmmae.active_faults(config, state)}
+    assert active[fault.surface]["fault_kind"] == kind
+    reason = next(r for r in out.status.reasons if fault.surface in r)
+    if kind == "stuck":
+        assert f"stuck at {fault.position_deg:.0f}" in reason or "stuck at -13" in reason
+        assert mine[1].detail["stuck_position_deg"] == pytest.approx(fault.position_deg, abs=1.5)
+    else:
+        assert "oscillating" in reason and "stuck" not in reason
+    # the classification comes fault_kind_window_s after the start of the detection run, which
+    # lies between the onset and the detection minus the hold
+    window = config.fault_kind_window_s
+    onset, detected = mine[0].detail["onset_s"], mine[0].t_s
+    assert onset + window - 0.02 <= mine[1].t_s <= detected - config.hold_s + window + 0.02
+
+
+def test_second_fault_while_one_is_active_is_isolated_by_pair_hypotheses() -> None:
+    """The right elevator sticks while the rudder is stuck: with pair hypotheses both are found
+    and kept; the seed's bank of single-surface filters does not find the second within the
+    flight (no filter explains two faults)."""
+    faults = (
+        SurfaceFault("rudder", 3.0, 30.0, "stuck", position_deg=7.7),
+        SurfaceFault("elevator_right", 7.0, 30.0, "stuck", position_deg=-13.0),
+    )
+    t, ch, _ = simulate_flight(16.0, faults=faults, seed=5)
+    config = stmmae.parse_config({})
+    state, _, _, events, _ = run(config, t, ch)
+    det = {e.detail["component"]: e.t_s for e in events if e.kind == "fault_detected"}
+    assert set(det) == {"rudder", "elevator_right"}
+    assert 3.0 < det["rudder"] < 3.5 and 7.0 < det["elevator_right"] < 11.0
+    assert {f["component"] for f in stmmae.active_faults(config, state)} == set(det)
+    assert not [e for e in events if e.kind == "fault_cleared"]
+    single = stmmae.parse_config({"pair_hypotheses": False})
+    _, _, _, events1, _ = run(single, t, ch)
+    det1 = [e.detail["component"] for e in events1 if e.kind == "fault_detected"]
+    assert det1 == ["rudder"]

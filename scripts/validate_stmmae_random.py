@@ -1,0 +1,495 @@
+"""Validate STMMAE on randomized flights (``estimators/simulators/uav_scenarios.py``); write the
+"randomized flights" part of the STMMAE section of ``docs/validation.md`` (between
+``<!-- stmmae-random:begin -->`` and ``<!-- stmmae-random:end -->``; the rest is kept).
+
+Three categories, fixed seeds: single faults, two overlapping faults, fault-free flights. Each
+flight is simulated, then the bank (default configuration, model linearized at the flight's
+airspeed and rate) runs over it in one batch. Scoring (per fault, interval ``[onset, end]``):
+
+* *isolated*: the fault's surface is detected during the interval and the first detection in
+  the interval names it; *strict*: in addition no other surface is detected in the interval;
+* *delay*: first detection of the surface after the onset, minus the onset;
+* *re-detections*: further ``fault_detected`` events of the surface inside the interval
+  (a detection cleared and raised again during the fault);
+* *kind*: ``fault_kind`` of the episode's ``fault_classified`` (or ``fault_cleared``) event
+  against the truth (stuck vs square/sine = oscillating);
+* *wrong*: a detection naming a surface with no fault at that time while another fault is
+  active (or ended less than 5 s before); *false alarm*: a detection with no fault active or
+  ended less than 5 s before.
+
+Fault-free flights also report the margins of the detection gates (how often each condition
+held alone).
+
+Run: ``.venv/bin/python scripts/validate_stmmae_random.py`` (defaults: 40 single, 40 pair,
+5 fault-free flight hours; about 25 min on two shared cores). ``--quick`` runs 6/6/0.2 h and
+does not write the document.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from estimators import stmmae
+from estimators.base import Batch, EstimatorEvent
+from estimators.models.small_uav import SURFACES, reference_model
+from estimators.simulators.uav_scenarios import (
+    FlightScenario,
+    describe,
+    random_scenario,
+    trim_deflections_deg,
+)
+
+ROOT = Path(__file__).resolve().parent.parent
+DOC = ROOT / "docs" / "validation.md"
+BEGIN, END = "<!-- stmmae-random:begin -->", "<!-- stmmae-random:end -->"
+GRACE_S = 5.0
+# development used seeds < 100; a first run with seeds 1000+/2000+/3000+ led to the evidence
+# level of 6 nats (docs/methods-stmmae.md), so the reported run uses fresh seeds
+SEED_BASE = {"single": 11000, "pair": 12000, "fault_free": 13000}
+GOALS = {
+    "single": 0.99,
+    "pair": 0.90,
+    "stuck_median_s": 0.3,
+    "stuck_p95_s": 0.5,
+    "kind": 0.95,
+}
+
+
+@dataclass
+class FaultRecord:
+    """Outcome for one injected fault."""
+
+    category: str
+    seed: int
+    surface: str
+    kind: str
+    offset_deg: float  # stuck: |position - trim|; oscillation: amplitude
+    period_s: float | None
+    airspeed_m_s: float
+    rate_hz: float
+    manoeuvre_at_onset: bool
+    order: int  # 0: first fault of the flight, 1: second of a pair
+    delay_s: float | None = None
+    isolated: bool = False
+    strict: bool = False
+    redetections: int = 0
+    reported_kind: str | None = None
+
+
+@dataclass
+class FlightRecord:
+    """Outcome for one flight."""
+
+    scenario: FlightScenario
+    faults: list[FaultRecord] = field(default_factory=list)
+    wrong: int = 0
+    false_alarms: int = 0
+    samples: int = 0
+    seconds: float = 0.0
+    gate_margins: dict[str, float] = field(default_factory=dict)
+
+
+def config_for(sc: FlightScenario, extra: dict[str, Any] | None = None) -> stmmae.StmmaeConfig:
+    """The default configuration (plus ``extra``) with the model linearized at the flight's
+    airspeed and rate."""
+    raw: dict[str, Any] = {"model": reference_model(1.0 / sc.sample_rate_hz, sc.airspeed_m_s)}
+    return stmmae.parse_config(raw | (extra or {}))
+
+
+def _manoeuvre_at(sc: FlightScenario, t_s: float) -> bool:
+    return any(m.start_s - 1.0 <= t_s <= m.start_s + m.duration_s + 1.0 for m in sc.manoeuvres)
+
+
+def _gate_margins(
+    config: stmmae.StmmaeConfig, t: np.ndarray, ch: dict[str, np.ndarray], out: Any
+) -> dict[str, float]:
+    """How often the detection conditions held on a fault-free flight (offline replica of the
+    probability and deflection gates; the likelihood-ratio gate is not replicated): runs of at
+    least ``hold_s`` with the marginal probability above ``detect_probability``, and of those
+    with the smoothed deflection error above ``min_deflection_error_deg`` as well; the largest
+    marginal fault probability."""
+    hold = config.hold_s
+    runs_p = runs_both = 0
+    pmax = 0.0
+    dt = float(np.median(np.diff(t)))
+    a = 1.0 - math.exp(-dt / config.deflection_smoothing_s)
+    lim = math.radians(config.deflection_limit_deg)
+    min_err = math.radians(config.min_deflection_error_deg)
+    surface_inputs = {i.name: i.channel for i in config.model.inputs}
+    for s in config.model.surfaces:
+        prob = out.samples[f"fault_probability_{s}"]
+        pmax = max(pmax, float(np.max(prob)))
+        defl = np.clip(out.samples[f"deflection_{s}"], -lim, lim)
+        sm = np.empty_like(defl)
+        acc = defl[0]
+        for k, v in enumerate(defl):
+            acc += a * (v - acc)
+            sm[k] = acc
+        cmd = ch[surface_inputs[s]]
+        for cond in (prob > config.detect_probability,):
+            both = cond & (np.abs(sm - cmd) > min_err)
+            for arr, name in ((cond, "p"), (both, "both")):
+                edges = np.flatnonzero(np.diff(np.concatenate([[0], arr.astype(int), [0]])))
+                starts, ends = edges[0::2], edges[1::2]
+                n_runs = int(np.sum((ends - starts) * dt >= hold))
+                if name == "p":
+                    runs_p += n_runs
+                else:
+                    runs_both += n_runs
+    return {"runs_probability": runs_p, "runs_probability_and_deflection": runs_both, "pmax": pmax}
+
+
+def run_flight(sc: FlightScenario, extra: dict[str, Any] | None = None) -> FlightRecord:
+    """Simulate and score one flight (``extra``: configuration changes)."""
+    t, ch, _truth = sc.simulate()
+    config = config_for(sc, extra)
+    t0 = time.perf_counter()
+    _, out = stmmae.step(config, stmmae.initial_state(config), Batch(t_s=t, channels=ch))
+    rec = FlightRecord(scenario=sc, samples=len(t), seconds=time.perf_counter() - t0)
+    events: list[EstimatorEvent] = list(out.events)
+    dets = [e for e in events if e.kind == "fault_detected"]
+    judged: dict[tuple[str, float | None], str] = {}
+    for e in events:
+        if e.kind in ("fault_classified", "fault_cleared") and e.detail["fault_kind"] != "pending":
+            judged.setdefault(
+                (e.detail["component"], e.detail["detected_s"]), e.detail["fault_kind"]
+            )
+    for e in dets:
+        comp = e.detail["component"]
+        active = [f for f in sc.faults if f.start_s <= e.t_s <= f.end_s + GRACE_S]
+        if any(f.surface == comp for f in active):
+            continue
+        if active:
+            rec.wrong += 1
+        else:
+            rec.false_alarms += 1
+    trims = trim_deflections_deg(sc.airspeed_m_s)
+    for order, f in enumerate(sc.faults):
+        inside = [e for e in dets if f.start_s <= e.t_s <= f.end_s]
+        mine = [e for e in inside if e.detail["component"] == f.surface]
+        others = [
+            e
+            for e in inside
+            if e.detail["component"] != f.surface
+            and not any(
+                g.surface == e.detail["component"] and g.start_s <= e.t_s <= g.end_s + GRACE_S
+                for g in sc.faults
+            )
+        ]
+        fr = FaultRecord(
+            category=sc.category,
+            seed=sc.seed,
+            surface=f.surface,
+            kind=f.kind,
+            offset_deg=abs(f.position_deg - trims[f.surface])
+            if f.kind == "stuck"
+            else f.amplitude_deg,
+            period_s=None if f.kind == "stuck" else f.period_s,
+            airspeed_m_s=sc.airspeed_m_s,
+            rate_hz=sc.sample_rate_hz,
+            manoeuvre_at_onset=_manoeuvre_at(sc, f.start_s),
+            order=order,
+        )
+        if mine:
+            fr.delay_s = mine[0].t_s - f.start_s
+            first_other = [e for e in others if e.t_s < mine[0].t_s]
+            fr.isolated = not first_other
+            fr.strict = not others
+            fr.redetections = len(mine) - 1
+            fr.reported_kind = judged.get((f.surface, mine[0].detail["detected_s"]))
+        rec.faults.append(fr)
+    if sc.category == "fault_free":
+        rec.gate_margins = _gate_margins(config, t, ch, out)
+    return rec
+
+
+# ----------------------------------------------------------------------------- report
+def _q(values: list[float], q: float) -> float:
+    return float(np.percentile(values, q)) if values else float("nan")
+
+
+def _pct(k: int, n: int) -> str:
+    return f"{k}/{n} ({100.0 * k / n:.1f} %)" if n else "-"
+
+
+def _delays(recs: list[FaultRecord]) -> str:
+    d = [r.delay_s for r in recs if r.delay_s is not None]
+    if not d:
+        return "-"
+    return f"{np.median(d):.2f} / {_q(d, 95):.2f} / {max(d):.2f}"
+
+
+def _kind_ok(r: FaultRecord) -> bool:
+    truth = "stuck" if r.kind == "stuck" else "oscillating"
+    return r.reported_kind == truth
+
+
+def _row(label: str, recs: list[FaultRecord]) -> str:
+    n = len(recs)
+    iso = sum(r.isolated for r in recs)
+    strict = sum(r.strict for r in recs)
+    judged = [r for r in recs if r.reported_kind is not None]
+    return (
+        f"| {label} | {n} | {_pct(iso, n)} | {_pct(strict, n)} | {_delays(recs)} | "
+        f"{sum(r.redetections for r in recs)} | {_pct(sum(_kind_ok(r) for r in judged), len(judged))} |"
+    )
+
+
+HEADER = (
+    "| condition | faults | isolated | strict | delay median / p95 / max, s | re-detections "
+    "| kind right |\n|---|---|---|---|---|---|---|"
+)
+
+
+def _bins(recs: list[FaultRecord], key: Any, edges: list[float], unit: str, name: str) -> list[str]:
+    out = []
+    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+        sel = [r for r in recs if key(r) is not None and lo <= key(r) < hi]
+        if sel:
+            out.append(_row(f"{name} {lo:g}-{hi:g} {unit}", sel))
+    return out
+
+
+def report(
+    flights: list[FlightRecord],
+    args: argparse.Namespace,
+    wall_s: float,
+    ablation: list[FlightRecord],
+) -> list[str]:
+    singles = [f for f in flights if f.scenario.category == "single"]
+    pairs = [f for f in flights if f.scenario.category == "pair"]
+    free = [f for f in flights if f.scenario.category == "fault_free"]
+    s_recs = [r for f in singles for r in f.faults]
+    p_recs = [r for f in pairs for r in f.faults]
+    all_recs = s_recs + p_recs
+    stuck = [r for r in s_recs if r.kind == "stuck"]
+    stuck_d = [r.delay_s for r in stuck if r.delay_s is not None]
+    judged = [r for r in all_recs if r.reported_kind is not None]
+    pair_ok = sum(all(r.isolated for r in f.faults) for f in pairs)
+    free_h = sum(f.scenario.duration_s for f in free) / 3600.0
+    free_fa = sum(f.false_alarms for f in free)
+    single_iso = sum(r.isolated for r in s_recs)
+    red_single = sum(r.redetections for r in s_recs)
+    all_samples = sum(f.samples for f in flights)
+    all_sec = sum(f.seconds for f in flights)
+
+    def met(ok: bool) -> str:
+        return "met" if ok else "**NOT met**"
+
+    stuck_med, stuck_p95 = (
+        (float(np.median(stuck_d)), _q(stuck_d, 95)) if stuck_d else (math.nan, math.nan)
+    )
+    kind_rate = sum(_kind_ok(r) for r in judged) / max(len(all_recs), 1)
+    lines = [
+        BEGIN,
+        "### Randomized flights",
+        "",
+        f"Generated by `scripts/validate_stmmae_random.py` (seeds from {SEED_BASE['single']} "
+        f"single, {SEED_BASE['pair']} pair, {SEED_BASE['fault_free']} fault-free; the "
+        "development of the decision logic used seeds below 100, and a first run on seeds 1000+, "
+        "2000+, 3000+ set the evidence level, see the note below the table): "
+        f"{len(singles)} flights with one fault, {len(pairs)} with two overlapping faults, "
+        f"{len(free)} fault-free flights ({free_h:.2f} h). Generator: "
+        "`estimators/simulators/uav_scenarios.py` (airspeed 22-32 m/s, 100 Hz or 50 Hz, turns "
+        "and climbs, stuck at 2-15 deg from trim, square/sine oscillations of 1.5-8 deg amplitude "
+        "and 0.5-4 s period, faults of 10-25 s, the second fault of a pair 2-8 s after the first "
+        "and overlapping it by at least 5 s). The bank runs with its default configuration and "
+        "the model linearized at the flight's airspeed and rate, one batch per flight. Scoring "
+        "rules: the script's docstring.",
+        "",
+        "| goal | target | measured | |",
+        "|---|---|---|---|",
+        f"| single faults isolated | >= 99 % | {_pct(single_iso, len(s_recs))} | "
+        f"{met(single_iso >= GOALS['single'] * len(s_recs))} |",
+        f"| overlapping pairs, both isolated | >= 90 % | {_pct(pair_ok, len(pairs))} | "
+        f"{met(pair_ok >= GOALS['pair'] * len(pairs))} |",
+        f"| stuck >= 2 deg from trim: median delay | <= 0.3 s | {stuck_med:.2f} s | "
+        f"{met(stuck_med <= GOALS['stuck_median_s'])} |",
+        f"| stuck >= 2 deg from trim: 95th percentile | <= 0.5 s | {stuck_p95:.2f} s | "
+        f"{met(stuck_p95 <= GOALS['stuck_p95_s'])} |",
+        f"| stuck vs oscillating right (of all faults) | >= 95 % | "
+        f"{_pct(sum(_kind_ok(r) for r in judged), len(all_recs))} | "
+        f"{met(kind_rate >= GOALS['kind'])} |",
+        f"| false alarms, fault-free | 0 in >= 5 h | {free_fa} in {free_h:.2f} h | "
+        f"{met(free_fa == 0 and free_h >= 5.0)} |",
+        f"| re-detections during a single fault | 0 | {red_single} | {met(red_single == 0)} |",
+        "",
+        f"Other counts: wrong-surface detections {sum(f.wrong for f in singles)} in the "
+        f"single-fault flights and {sum(f.wrong for f in pairs)} in the pair flights; false "
+        f"alarms (no fault active) {sum(f.false_alarms for f in singles + pairs)} in the faulty "
+        f"flights. Bank cost: {1e6 * all_sec / max(all_samples, 1):.0f} us per sample over "
+        f"{all_samples} samples (16 filters with pair hypotheses; shared machine). Wall time "
+        f"{wall_s / 60:.0f} min.",
+        "",
+        "**Single faults by condition** (*isolated*: first detection in the fault names it; "
+        "*strict*: no other surface detected during the fault; delays over detected faults; "
+        "*kind right* over faults whose kind was judged).",
+        "",
+        HEADER,
+        _row("all single faults", s_recs),
+    ]
+    for s in SURFACES:
+        for kinds, label in ((("stuck",), "stuck"), (("square", "sine"), "oscillating")):
+            sel = [r for r in s_recs if r.surface == s and r.kind in kinds]
+            if sel:
+                lines.append(_row(f"{s} {label}", sel))
+    lines += _bins(stuck, lambda r: r.offset_deg, [2, 5, 10, 15.01], "deg", "stuck, offset")
+    osc = [r for r in s_recs if r.kind != "stuck"]
+    lines += _bins(osc, lambda r: r.period_s, [0.5, 1.0, 2.0, 4.01], "s", "oscillation, period")
+    lines += _bins(
+        osc, lambda r: r.offset_deg, [1.5, 3.0, 5.0, 8.01], "deg", "oscillation, amplitude"
+    )
+    lines += _bins(s_recs, lambda r: r.airspeed_m_s, [22, 25, 28, 32.01], "m/s", "airspeed")
+    for rate in (100.0, 50.0):
+        sel = [r for r in s_recs if r.rate_hz == rate]
+        if sel:
+            lines.append(_row(f"{rate:g} Hz", sel))
+    for flag, label in ((True, "manoeuvre at onset"), (False, "no manoeuvre at onset")):
+        sel = [r for r in s_recs if r.manoeuvre_at_onset == flag]
+        if sel:
+            lines.append(_row(label, sel))
+    lines += [
+        "",
+        "**Overlapping pairs** (first and second fault of each flight).",
+        "",
+        HEADER,
+        _row("first fault", [r for r in p_recs if r.order == 0]),
+        _row("second fault", [r for r in p_recs if r.order == 1]),
+        _row(
+            "second fault, same pair of halves (both ailerons or both elevators)",
+            [
+                r
+                for f in pairs
+                for r in f.faults[1:]
+                if r.surface.split("_")[0] == f.faults[0].surface.split("_")[0]
+            ],
+        ),
+        "",
+    ]
+    if ablation:
+        a_recs = [r for f in ablation for r in f.faults]
+        a_ok = sum(all(r.isolated for r in f.faults) for f in ablation)
+        lines += [
+            "Same pair flights with `pair_hypotheses: false` (the seed's bank of one filter per "
+            f"surface): both isolated in {_pct(a_ok, len(ablation))} (with pairs: "
+            f"{_pct(pair_ok, len(pairs))}); wrong-surface detections "
+            f"{sum(f.wrong for f in ablation)} (with pairs: {sum(f.wrong for f in pairs)}).",
+            "",
+            HEADER,
+            _row("first fault, no pair hypotheses", [r for r in a_recs if r.order == 0]),
+            _row("second fault, no pair hypotheses", [r for r in a_recs if r.order == 1]),
+            "",
+        ]
+    if free:
+        margins = [f.gate_margins for f in free]
+        lines += [
+            "**Fault-free flights**: "
+            f"{len(free)} x {free[0].scenario.duration_s:g} s, {free_fa} false alarms. Margins: "
+            "largest marginal fault probability "
+            f"{max(m['pmax'] for m in margins):.3f}; runs of at least `hold_s` with a surface's "
+            f"fault probability above `detect_probability`: "
+            f"{int(sum(m['runs_probability'] for m in margins))} "
+            f"(in {sum(m['runs_probability'] > 0 for m in margins)} flights), of which the "
+            "smoothed deflection error was also above `min_deflection_error_deg`: "
+            f"{int(sum(m['runs_probability_and_deflection'] for m in margins))}; the "
+            "likelihood-ratio condition is the third gate.",
+            "",
+        ]
+    missed = [r for r in all_recs if not r.isolated]
+    if missed:
+        lines += ["Faults not isolated (flight seed: fault, delay of its own detection):", ""]
+        for f in flights:
+            for r, fault in zip(f.faults, f.scenario.faults, strict=True):
+                if not r.isolated:
+                    d = "never" if r.delay_s is None else f"{r.delay_s:.2f} s"
+                    lines.append(
+                        f"* {f.scenario.category} {f.scenario.seed}: {describe(fault)}; {d}"
+                    )
+        lines.append("")
+    wrong_kind = [r for r in judged if not _kind_ok(r)]
+    if wrong_kind:
+        lines.append(
+            "Kind wrong: "
+            + "; ".join(
+                f"{r.category} {r.seed} {r.surface} {r.kind} reported {r.reported_kind}"
+                for r in wrong_kind
+            )
+        )
+        lines.append("")
+    lines.append(END)
+    return lines
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--singles", type=int, default=40)
+    ap.add_argument("--pairs", type=int, default=40)
+    ap.add_argument("--fault-free-hours", type=float, default=5.0)
+    ap.add_argument("--quick", action="store_true", help="6/6/0.2 h, no document written")
+    ap.add_argument("--no-write", action="store_true", help="print, do not write the document")
+    ap.add_argument(
+        "--no-ablation", action="store_true", help="skip the pair flights without pair hypotheses"
+    )
+    args = ap.parse_args()
+    if args.quick:
+        args.singles, args.pairs, args.fault_free_hours = 6, 6, 0.2
+    stmmae.warm_up()
+    t0 = time.perf_counter()
+    plan: list[FlightScenario] = [
+        random_scenario(SEED_BASE["single"] + i, "single") for i in range(args.singles)
+    ] + [random_scenario(SEED_BASE["pair"] + i, "pair") for i in range(args.pairs)]
+    n_free = int(math.ceil(args.fault_free_hours * 3600.0 / 600.0 - 1e-9))
+    plan += [random_scenario(SEED_BASE["fault_free"] + i, "fault_free") for i in range(n_free)]
+    flights = []
+    for i, sc in enumerate(plan):
+        rec = run_flight(sc)
+        flights.append(rec)
+        marks = ", ".join(
+            f"{r.surface} {r.kind} {'-' if r.delay_s is None else f'{r.delay_s:.2f}'}"
+            f"{'' if r.isolated else ' NOT ISOLATED'} {r.reported_kind}"
+            for r in rec.faults
+        )
+        print(
+            f"[{i + 1}/{len(plan)}] {sc.category} {sc.seed}: {marks} wrong {rec.wrong} "
+            f"fa {rec.false_alarms}",
+            flush=True,
+        )
+    ablation = []
+    if not args.no_ablation:
+        for sc in plan:
+            if sc.category == "pair":
+                rec = run_flight(sc, {"pair_hypotheses": False})
+                ablation.append(rec)
+                print(f"[ablation] pair {sc.seed}: wrong {rec.wrong}", flush=True)
+    lines = report(flights, args, time.perf_counter() - t0, ablation)
+    section = "\n".join(lines)
+    print(section)
+    if args.quick or args.no_write:
+        return 0
+    text = DOC.read_text(encoding="utf-8")
+    if BEGIN in text and END in text:
+        head, rest = text.split(BEGIN, 1)
+        _, tail = rest.split(END, 1)
+        text = head + section + tail
+    else:
+        anchor = "<!-- stmmae:end -->"
+        text = (
+            text.replace(anchor, anchor + "\n\n" + section, 1)
+            if anchor in text
+            else text.rstrip("\n") + "\n\n" + section + "\n"
+        )
+    DOC.write_text(text, encoding="utf-8")
+    print(f"wrote {DOC}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
