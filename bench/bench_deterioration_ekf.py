@@ -99,7 +99,7 @@ def rul_cases() -> list[tuple[str, np.ndarray, np.ndarray, tuple[np.ndarray, np.
     for label, m, extra, load in (
         ("seed scenario at t = 15 s (fast wear, ~75 periods)", 0.01, {}, rul.SquareWaveLoad()),
         ("m = 0.001 (slow wear, cycle jumps)", 0.001, {}, rul.SquareWaveLoad()),
-        ("constant 20 A (the seed's assumption)", 0.01, {}, rul.ConstantLoad(20.0)),
+        ("constant 20 A (the seed's assumption)", 0.01, {}, rul.ConstantLoad(current_a=20.0)),
         (
             "seed Q: wide spread of m",
             0.01,
