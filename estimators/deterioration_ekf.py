@@ -780,14 +780,19 @@ def _rul_level(q05: float | None, config: DekfConfig, previous: Status | None) -
 
 
 def serving_status(
-    vec: FloatArray, config: DekfConfig, dn: float | None, q05: float | None
+    vec: FloatArray,
+    config: DekfConfig,
+    dn: float | None,
+    q05: float | None,
+    m: float,
+    var_m: float,
 ) -> tuple[Status, tuple[str, ...]]:
     """The status of the estimator as served (prognoses and the end-of-batch report).
 
     In order: ``failed`` once Dn-hat has reached ``rul_failure_dn`` (latched); ``learning``
-    while alpha0 is being estimated, before the first health-window verdict, or while m-hat is
-    not known to ``rul_converged_m_rel_std``; ``unknown`` while the consistency verdict (with
-    its hysteresis) rejects; otherwise the worst of the Dn and RUL levels."""
+    while alpha0 is being estimated or before the first health-window verdict; ``unknown``
+    while the consistency verdict (with its hysteresis) rejects; ``learning`` while m-hat is not
+    known to ``rul_converged_m_rel_std``; otherwise the worst of the Dn and RUL levels."""
     reasons: list[str] = []
     if vec[kern.ST_FAILED] == 1.0:
         return "failed", (f"Dn reached rul_failure_dn {config.rul_failure_dn:g}",)
@@ -796,15 +801,14 @@ def serving_status(
     verdict = vec[kern.ST_VERDICT]
     if not math.isfinite(verdict):
         return "learning", ("no health window completed yet",)
-    m = float(vec[kern.ST_X + 3])
-    s_m = math.sqrt(max(float(vec[kern.ST_P + 9]), 0.0))
+    if verdict == 0.0:
+        return "unknown", ("innovations inconsistent in the latest health window(s)",)
+    s_m = math.sqrt(max(var_m, 0.0))
     if not (m > 0.0 and s_m <= config.rul_converged_m_rel_std * m):
         return "learning", (
             f"wear rate not converged (m {m:.3g} +- {s_m:.2g}, needs relative std "
             f"<= {config.rul_converged_m_rel_std:g})",
         )
-    if verdict == 0.0:
-        return "unknown", ("innovations inconsistent in the latest health window(s)",)
     statuses: list[Status] = [_grade_dn(dn, config, reasons, "Dn")]
     prev_i = vec[kern.ST_RUL_STATUS]
     prev = STATUSES[int(prev_i)] if math.isfinite(prev_i) else None
@@ -904,7 +908,9 @@ def prognosis_at(config: DekfConfig, row: FloatArray, vec: FloatArray) -> RulEst
         log_time_var=extra_var,
         walk_rel_var_per_s=config.m_walk_rel**2,
     )
-    status, reasons = serving_status(vec, config, _none_if_nan(dn), result.q05_s)
+    status, reasons = serving_status(
+        vec, config, _none_if_nan(dn), result.q05_s, float(x[3]), float(cov[3, 3])
+    )
     vec[kern.ST_HIST_T] = t_s
     vec[kern.ST_HIST_ELL] = ell
     vec[kern.ST_HIST_VAR] = var_ell
@@ -1032,12 +1038,13 @@ def _consistency_event(
 
 
 def _status_event(est: RulEstimate, previous: Status | None) -> EstimatorEvent | None:
-    """``rul_status_changed`` where the served status of successive prognoses changes."""
+    """``rul_threshold_crossed`` where the served status of successive prognoses changes (any
+    of the six statuses, not only the RUL levels)."""
     if previous == est.status:
         return None
     return EstimatorEvent(
         t_s=est.t_s,
-        kind="rul_status_changed",
+        kind="rul_threshold_crossed",
         detail={
             "from": previous,
             "to": est.status,
@@ -1057,7 +1064,9 @@ def _status(vec: FloatArray, config: DekfConfig) -> StatusReport:
     if dn is not None and dn >= config.rul_failure_dn:
         vec[kern.ST_FAILED] = 1.0
     q05 = _none_if_nan(vec[kern.ST_RUL_Q05])
-    status, reasons = serving_status(vec, config, dn, q05)
+    status, reasons = serving_status(
+        vec, config, dn, q05, float(vec[kern.ST_X + 3]), float(vec[kern.ST_P + 9])
+    )
     return StatusReport(status=status, reasons=reasons)
 
 
@@ -1083,6 +1092,8 @@ def _diagnosis(vec: FloatArray, t_s: float, config: DekfConfig) -> Diagnosis:
     detail["noise_var_w2"] = _none_if_nan(vec[kern.ST_R_HAT + 1])
     detail["gated_updates"] = int(vec[kern.ST_N_GATED])
     detail["rul_q05_s"] = _none_if_nan(vec[kern.ST_RUL_Q05])
+    served = vec[kern.ST_RUL_STATUS]
+    detail["rul_level"] = STATUSES[int(served)] if math.isfinite(served) else None
     detail["rul_model_error_rel_std"] = math.sqrt(rate_error_var(vec))
     return Diagnosis(t_s=t_s, detail=detail)
 
