@@ -178,8 +178,10 @@ class DekfConfig(EstimatorConfigModel):
     )
     noise_adaptation: bool = Field(
         True,
-        description="estimate the measurement noise variances online (Sage-Husa covariance "
-        "matching of the innovations); no datasheet R needed",
+        description="estimate the noise online, so no datasheet R is needed: the sensor noise "
+        "of each speed from the running median of its third differences, and the process "
+        "noise of the speeds (model, timing and discretization error) by covariance matching "
+        "of the innovations",
     )
     noise_memory_s: PositiveFloat = Field(
         20.0, description="memory of the noise estimate (exponential forgetting), s"
@@ -520,6 +522,7 @@ _FRESH_NAN = (
     kern.ST_HIST_RATE,
     kern.ST_HIST_VAR,
     kern.ST_RUL_STATUS,
+    *range(kern.ST_Y_HIST, kern.ST_Y_HIST + 6),
 )
 
 

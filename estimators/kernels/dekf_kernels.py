@@ -71,6 +71,10 @@ CFG_CALIB_S = 47  # alpha0 calibration length (s), when alpha0 is NaN
 CFG_ALPHA_PRIOR = 48  # initial alpha while calibrating
 CFG_ALPHA_PRIOR_VAR = 49  # its variance
 CFG_LEN = 50
+#: sigma = median(|y_k - 3 y_k-1 + 3 y_k-2 - y_k-3|) / (0.6745 sqrt(20)) for white noise
+MEDIAN_TO_SIGMA = 1.0 / (0.6744897501960817 * math.sqrt(20.0))
+#: third differences needed before the noise estimate replaces the configured R
+MIN_DIFFS = 8
 #: largest ln-factor of the back-extrapolation of alpha0 over the calibration segment
 CALIB_MAX_LOG = 0.5
 #: A spacing within this fraction of the nominal period is taken as the nominal period.
@@ -130,8 +134,12 @@ ST_ERR_N = 66  # log-rate error record: count
 ST_ERR_SUM2 = 67  # sum of squared log-rate errors
 ST_ERR_SUMV = 68  # sum of the squared errors the covariance explains
 ST_RUL_STATUS = 69  # index in STATUSES of the last prognosis status (NaN: none)
-ST_RING = 70  # bins currents, then bins durations
-ST_BASE_LEN = 70
+ST_QW = 70  # 2: estimated process noise of w1, w2 per step (covariance matching)
+ST_Y_HIST = 72  # 6: last three valid measurements of w1, then of w2 (NaN: fewer)
+ST_QTL = 78  # 2: running median of |third difference| of w1, w2
+ST_N_QTL = 80  # 2: its sample counts
+ST_RING = 82  # bins currents, then bins durations
+ST_BASE_LEN = 82
 ST_BASE_LEN_V1 = 49
 
 # health-window rows
@@ -505,6 +513,18 @@ def _ekf_kernel(
     r2 = cfg[CFG_R2]
 
     init = st[ST_INIT] == 1.0
+    qw0 = st[ST_QW]
+    qw1 = st[ST_QW + 1]
+    h00 = st[ST_Y_HIST]
+    h01 = st[ST_Y_HIST + 1]
+    h02 = st[ST_Y_HIST + 2]
+    h10 = st[ST_Y_HIST + 3]
+    h11 = st[ST_Y_HIST + 4]
+    h12 = st[ST_Y_HIST + 5]
+    qt0 = st[ST_QTL]
+    qt1 = st[ST_QTL + 1]
+    nq0 = st[ST_N_QTL]
+    nq1 = st[ST_N_QTL + 1]
     rh0 = st[ST_R_HAT]
     rh1 = st[ST_R_HAT + 1]
     if not math.isfinite(rh0):
@@ -648,10 +668,10 @@ def _ekf_kernel(
             w1 = e10 * p03 + e11 * p13 + e12 * p23 + c1 * p33
             w2 = e20 * p03 + e21 * p13 + e22 * p23 + c2 * p33
             # + Q + var(I) gb gb^T: the held current's error over the step
-            n00 = m00 * e00 + m01 * e01 + m02 * e02 + w0 * c0 + qd0 + var_u * gb0 * gb0
+            n00 = m00 * e00 + m01 * e01 + m02 * e02 + w0 * c0 + qd0 + qw0 + var_u * gb0 * gb0
             n01 = m00 * e10 + m01 * e11 + m02 * e12 + w0 * c1 + var_u * gb0 * gb1
             n02 = m00 * e20 + m01 * e21 + m02 * e22 + w0 * c2 + var_u * gb0 * gb2
-            n11 = m10 * e10 + m11 * e11 + m12 * e12 + w1 * c1 + qd1 + var_u * gb1 * gb1
+            n11 = m10 * e10 + m11 * e11 + m12 * e12 + w1 * c1 + qd1 + qw1 + var_u * gb1 * gb1
             n12 = m10 * e20 + m11 * e21 + m12 * e22 + w1 * c2 + var_u * gb1 * gb2
             n22 = m20 * e20 + m21 * e21 + m22 * e22 + w2 * c2 + qd2 + var_u * gb2 * gb2
             p03 = w0 * e44
@@ -672,20 +692,59 @@ def _ekf_kernel(
                     ob_udt = 0.0
                     ob_dt = 0.0
                     ob_count = 0.0
-        # --- measurement noise: Sage-Husa covariance matching of the innovations,
-        # R_j <- (1 - d) R_j + d (min(e_j^2, gate S_jj) - P_jj), d = max(1 / (n + 2), dt / memory)
-        # (the configured R counts as one observation; the prior sample is not one)
-        if memory > 0.0 and predicted and (have0 or have1):
-            d = max(1.0 / (n_adapt + 2.0), (tk - t_last) / memory)
+        # --- noise estimation (when adaptive).
+        # Sensor noise R from the measurements alone: the running median of the absolute third
+        # difference of each speed (white noise of variance r gives a N(0, 20 r) difference,
+        # the smooth signal almost none; the median ignores the transients that follow current
+        # changes), by multiplicative steps of 1 / (n + 1), then at least 2 dt / memory.
+        # Process noise of the speeds (model, input-timing and discretization error) by
+        # covariance matching of the innovations against their predicted variance:
+        # q_j <- max(0, q_j + d (min(e_j^2, gate S_jj) - S_jj)), d = max(1 / (n + 2), dt / memory).
+        if memory > 0.0:
+            g_min = 2.0 * (tk - t_last) / memory if predicted else 1.0
             if have0:
-                ea = y0 - x0
-                ea2 = min(ea * ea, gate1 * (p00 + rh0))
-                rh0 = max((1.0 - d) * rh0 + d * (ea2 - p00), (1.0 - d) * rh0)
+                if math.isfinite(h02):
+                    a3 = abs(y0 - 3.0 * h00 + 3.0 * h01 - h02)
+                    if nq0 == 0.0:
+                        qt0 = max(a3, 1e-300)
+                    else:
+                        g = 1.0 + max(1.0 / (nq0 + 1.0), g_min)
+                        qt0 = qt0 * g if a3 > qt0 else qt0 / g
+                    nq0 += 1.0
+                    if nq0 >= MIN_DIFFS:
+                        rh0 = (qt0 * MEDIAN_TO_SIGMA) ** 2
+                h02 = h01
+                h01 = h00
+                h00 = y0
+            else:
+                h00 = h01 = h02 = np.nan
             if have1:
-                ea = y1 - x1
-                ea2 = min(ea * ea, gate1 * (p11 + rh1))
-                rh1 = max((1.0 - d) * rh1 + d * (ea2 - p11), (1.0 - d) * rh1)
-            n_adapt += 1.0
+                if math.isfinite(h12):
+                    a3 = abs(y1 - 3.0 * h10 + 3.0 * h11 - h12)
+                    if nq1 == 0.0:
+                        qt1 = max(a3, 1e-300)
+                    else:
+                        g = 1.0 + max(1.0 / (nq1 + 1.0), g_min)
+                        qt1 = qt1 * g if a3 > qt1 else qt1 / g
+                    nq1 += 1.0
+                    if nq1 >= MIN_DIFFS:
+                        rh1 = (qt1 * MEDIAN_TO_SIGMA) ** 2
+                h12 = h11
+                h11 = h10
+                h10 = y1
+            else:
+                h10 = h11 = h12 = np.nan
+            if predicted and nq0 >= MIN_DIFFS and nq1 >= MIN_DIFFS:
+                d = max(1.0 / (n_adapt + 2.0), (tk - t_last) / memory)
+                if have0:
+                    ea = y0 - x0
+                    sa = p00 + rh0
+                    qw0 = max(qw0 + d * (min(ea * ea, gate1 * sa) - sa), 0.0)
+                if have1:
+                    ea = y1 - x1
+                    sa = p11 + rh1
+                    qw1 = max(qw1 + d * (min(ea * ea, gate1 * sa) - sa), 0.0)
+                n_adapt += 1.0
         rv0 = rh0
         rv1 = rh1
         # --- update (Joseph form), with the measured channels only; an update whose NIS
@@ -1078,6 +1137,18 @@ def _ekf_kernel(
     st[ST_CALIB_INT] = calib_int
     st[ST_W_N_GATED] = w_n_gated
     st[ST_N_GATED] = n_gated
+    st[ST_QW] = qw0
+    st[ST_QW + 1] = qw1
+    st[ST_Y_HIST] = h00
+    st[ST_Y_HIST + 1] = h01
+    st[ST_Y_HIST + 2] = h02
+    st[ST_Y_HIST + 3] = h10
+    st[ST_Y_HIST + 4] = h11
+    st[ST_Y_HIST + 5] = h12
+    st[ST_QTL] = qt0
+    st[ST_QTL + 1] = qt1
+    st[ST_N_QTL] = nq0
+    st[ST_N_QTL + 1] = nq1
     return windows[:n_win], events[:n_ev], snaps[:n_snap], 0
 
 
