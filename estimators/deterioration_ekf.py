@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Annotated, Any, Literal
@@ -48,7 +48,6 @@ from pydantic import AllowInfNan, Field, Strict, StrictInt, ValidationError, mod
 
 from estimators import rul as rulmod
 from estimators.base import (
-    STATUS_ORDER,
     STATUSES,
     Batch,
     Diagnosis,
@@ -61,7 +60,6 @@ from estimators.base import (
     RulEstimate,
     Status,
     StatusReport,
-    StateVersionError,
     StepOutputs,
     config_error,
     dump_vector_state,
@@ -124,13 +122,13 @@ _PLANT = FrictionDriveParams()
 class PlantConfig(EstimatorConfigModel):
     """Physical parameters of the friction drive (seed Table 1)."""
 
-    r1_m: PositiveFloat = Field(_PLANT.r1_m, description="external radius of the motor roller, m")
-    r2_m: PositiveFloat = Field(_PLANT.r2_m, description="external radius of the wheel, m")
-    b1_nm_s: PositiveFloat = Field(_PLANT.b1_nm_s, description="motor viscous damping, N m s/rad")
-    b2_nm_s: PositiveFloat = Field(_PLANT.b2_nm_s, description="wheel viscous damping, N m s/rad")
-    j1_kg_m2: PositiveFloat = Field(_PLANT.j1_kg_m2, description="motor inertia, kg m^2")
-    j2_kg_m2: PositiveFloat = Field(_PLANT.j2_kg_m2, description="wheel inertia, kg m^2")
-    km_nm_a: PositiveFloat = Field(_PLANT.km_nm_a, description="motor torque constant, N m/A")
+    r1_m: PositiveFloat = Field(default=_PLANT.r1_m, description="external radius of the motor roller, m")
+    r2_m: PositiveFloat = Field(default=_PLANT.r2_m, description="external radius of the wheel, m")
+    b1_nm_s: PositiveFloat = Field(default=_PLANT.b1_nm_s, description="motor viscous damping, N m s/rad")
+    b2_nm_s: PositiveFloat = Field(default=_PLANT.b2_nm_s, description="wheel viscous damping, N m s/rad")
+    j1_kg_m2: PositiveFloat = Field(default=_PLANT.j1_kg_m2, description="motor inertia, kg m^2")
+    j2_kg_m2: PositiveFloat = Field(default=_PLANT.j2_kg_m2, description="wheel inertia, kg m^2")
+    km_nm_a: PositiveFloat = Field(default=_PLANT.km_nm_a, description="motor torque constant, N m/A")
 
     def params(self) -> FrictionDriveParams:
         """The same values as the simulator's parameter record."""
@@ -144,136 +142,138 @@ class DekfConfig(EstimatorConfigModel):
     once per config (cached properties, not fields).
     """
 
-    plant: PlantConfig = Field(default_factory=PlantConfig, description="seed Table 1 values")
+    plant: PlantConfig = Field(default=PlantConfig(), description="seed Table 1 values")
     r_diag: tuple[PositiveFloat, PositiveFloat] = Field(
-        (1.0063e-8, 1.0083e-10),
+        default=(1.0063e-8, 1.0083e-10),
         description="measurement noise variances of w1, w2, (rad/s)^2 (seed section 5.2); the "
         "starting value when noise_adaptation is on, the fixed value otherwise",
     )
     q_diag: tuple[NonNegativeFloat, NonNegativeFloat, NonNegativeFloat, NonNegativeFloat] = Field(
-        (0.0, 0.0, 0.0, 0.0),
+        default=(0.0, 0.0, 0.0, 0.0),
         description="per-sample process noise variances of w1 (rad/s)^2, w2 (rad/s)^2, alpha "
         "(N s/m)^2 and m (seed eq. 15); added to the m_walk_rel random walk",
     )
     m_walk_rel: NonNegativeFloat = Field(
-        1e-3,
+        default=1e-3,
         description="random walk of the wear rate m, relative to m-hat, per sqrt(s): adds "
         "(m_walk_rel max(m-hat, 0.1 m0))^2 dt to the variance of m each step (seed assumption "
         "iii, a slowly varying m); rate-independent, unlike q_diag",
     )
     current_var: NonNegativeFloat = Field(
-        0.0, description="variance of the current measurement, A^2 (propagated through Gamma B)"
+        default=0.0, description="variance of the current measurement, A^2 (propagated through Gamma B)"
     )
     input_model: Literal["interval", "hold"] = Field(
-        "interval",
+        default="interval",
         description="current over a sample interval: 'interval' = the mean of the two samples "
         "bounding it, with the variance of an edge at an unknown instant ((dI)^2 / 12, plus "
         "input_timing_s); 'hold' = the earlier sample held (the seed's eq. 16, exact only when "
         "the current changes on the sample grid)",
     )
     input_timing_s: NonNegativeFloat = Field(
-        0.001,
+        default=0.001,
         description="largest expected offset between the current and the speed channels "
         "(skew and jitter), s; widens the input variance of the intervals next to a change",
     )
     noise_adaptation: bool = Field(
-        True,
+        default=True,
         description="estimate the noise online, so no datasheet R is needed: the sensor noise "
         "of each speed from the running median of its third differences, and the process "
         "noise of the speeds (model, timing and discretization error) by covariance matching "
         "of the innovations",
     )
     noise_memory_s: PositiveFloat = Field(
-        20.0, description="memory of the noise estimate (exponential forgetting), s"
+        default=20.0, description="memory of the noise estimate (exponential forgetting), s"
     )
     gate_sigma: PositiveFloat | None = Field(
-        5.0,
+        default=5.0,
         description="innovation gate: an update whose NIS exceeds the chi-square quantile of the "
         "tail probability of a normal |z| > gate_sigma is down-weighted (its S scaled up to the "
         "gate, Huber-like) and counted; None: no gating",
     )
     p0_diag: tuple[PositiveFloat, PositiveFloat, PositiveFloat, PositiveFloat] = Field(
-        (SIGMA_M2, SIGMA_M2, SIGMA_M2, SIGMA_M2),
+        default=(SIGMA_M2, SIGMA_M2, SIGMA_M2, SIGMA_M2),
         description="initial variances of w1, w2, alpha, m (seed section 5.2); the alpha entry "
         "is replaced by (alpha0_prior_rel_std alpha0_prior)^2 when alpha0 is estimated",
     )
     alpha0: PositiveFloat | None = Field(
-        None,
+        default=None,
         description="contact quality at Dn = 0, N s/m; None: estimated over the first "
         "alpha0_calibration_s seconds of the stream (the unit must start healthy)",
     )
     alpha0_prior: PositiveFloat = Field(
-        10.0, description="initial guess of alpha while alpha0 is estimated, N s/m"
+        default=10.0, description="initial guess of alpha while alpha0 is estimated, N s/m"
     )
     alpha0_prior_rel_std: PositiveFloat = Field(
-        0.5, description="relative standard deviation of alpha0_prior"
+        default=0.5, description="relative standard deviation of alpha0_prior"
     )
     alpha0_calibration_s: PositiveFloat = Field(
-        10.0, description="length of the healthy segment alpha0 is estimated over, s"
+        default=20.0,
+        description="length of the segment alpha0 is estimated over, s: the unit must start "
+        "healthy, and the current must vary over it (alpha is seen in the transients)",
     )
     alpha_max_rel: NonNegativeFloat = Field(
-        0.1,
+        default=0.1,
         description="projection bound: alpha-hat <= alpha0 (1 + alpha_max_rel) (with nonnegative)",
     )
-    m0: FiniteFloat = Field(0.01, description="initial estimate of m (seed section 5.1)")
-    w1_0: FiniteFloat | None = Field(None, description="initial w1, rad/s; None: first measurement")
-    w2_0: FiniteFloat | None = Field(None, description="initial w2, rad/s; None: first measurement")
+    m0: FiniteFloat = Field(default=0.01, description="initial estimate of m (seed section 5.1)")
+    w1_0: FiniteFloat | None = Field(default=None, description="initial w1, rad/s; None: first measurement")
+    w2_0: FiniteFloat | None = Field(default=None, description="initial w2, rad/s; None: first measurement")
     f44: FiniteFloat = Field(
-        0.0, description="F44 of the Jacobian (seed section 5.2 uses -100), covariance only, 1/s"
+        default=0.0, description="F44 of the Jacobian (seed section 5.2 uses -100), covariance only, 1/s"
     )
     nonnegative: bool = Field(
-        True,
+        default=True,
         description="physical projection of the estimate: m-hat >= 0, 0 <= alpha-hat <= alpha0 "
         "(1 + alpha_max_rel), wear predicted at max(m-hat, 0) (seed section 3.2)",
     )
-    bound_sigma: PositiveFloat = Field(3.0, description="c of the bounds c sqrt(P_ii) (eq. 24)")
-    expm_tol: Fraction = Field(1e-9, description="remainder bound of the discretization series")
+    bound_sigma: PositiveFloat = Field(default=3.0, description="c of the bounds c sqrt(P_ii) (eq. 24)")
+    expm_tol: Fraction = Field(default=1e-9, description="remainder bound of the discretization series")
     sample_period_s: PositiveFloat | None = Field(
-        None,
+        default=None,
         description="nominal sample period, s: a spacing within 0.1 % of it is taken as exactly "
         "it (absolute time stamps then do not jitter the discretization); None: actual spacing",
     )
     health_window_samples: StrictInt = Field(
-        10_000, ge=MIN_WINDOW, le=100_000_000, description="health window length, stream samples"
+        default=2_000, ge=MIN_WINDOW, le=100_000_000, description="health window length, stream samples"
     )
     consistency_sigma: PositiveFloat = Field(
-        3.0, description="z of the innovation tests (NIS mean, bias, whiteness)"
+        default=3.0, description="z of the innovation tests (NIS mean, bias, whiteness)"
     )
     consistency_tolerance: NonNegativeFloat = Field(
-        0.25,
+        default=0.25,
         description="model-error allowance of the consistency tests: the window NIS mean may "
         "exceed its chi-square bound by this fraction and the lag-1 autocorrelation of the "
         "normalized innovations may reach this value before the window is rejected",
     )
-    dn_watch: Fraction = Field(0.5, description="Dn level of the watch status")
-    dn_alert: Fraction = Field(0.7, description="Dn level of the alert status")
-    dn_hysteresis: NonNegativeFloat = Field(0.01, description="Dn drop needed to leave a level")
+    dn_watch: Fraction = Field(default=0.5, description="Dn level of the watch status")
+    dn_alert: Fraction = Field(default=0.7, description="Dn level of the alert status")
+    dn_hysteresis: NonNegativeFloat = Field(default=0.01, description="Dn drop needed to leave a level")
     rul_every_s: PositiveFloat | Literal["every_batch"] | None = Field(
-        10.0, description="prognosis period, stream s; 'every_batch'; None: no prognosis"
+        default=10.0, description="prognosis period, stream s; 'every_batch'; None: no prognosis"
     )
-    rul_failure_dn: Fraction = Field(0.9, description="Dn at which the drive is failed")
+    rul_failure_dn: Fraction = Field(default=0.9, description="Dn at which the drive is failed")
     rul_load: rulmod.LoadAssumption = Field(
-        default_factory=rulmod.SquareWaveLoad, description="future-load assumption"
+        default=rulmod.SquareWaveLoad(), description="future-load assumption"
     )
-    rul_trajectories: StrictInt = Field(1000, ge=10, le=1_000_000, description="Monte Carlo size")
-    rul_horizon_s: PositiveFloat = Field(1.0e7, description="longest RUL looked for, s")
-    rul_seed: StrictInt = Field(0, ge=0, le=2**63 - 1, description="base seed of the draws")
-    rul_watch_s: NonNegativeFloat = Field(86_400.0, description="RUL 5 % quantile level, watch, s")
-    rul_alert_s: NonNegativeFloat = Field(3_600.0, description="RUL 5 % quantile level, alert, s")
-    rul_segment_tol: Fraction = Field(0.01, description="largest ln(alpha) change per step")
-    rul_jump_tol: Fraction = Field(0.25, description="ln(alpha) change per cycle jump")
+    rul_trajectories: StrictInt = Field(default=1000, ge=10, le=1_000_000, description="Monte Carlo size")
+    rul_horizon_s: PositiveFloat = Field(default=1.0e7, description="longest RUL looked for, s")
+    rul_seed: StrictInt = Field(default=0, ge=0, le=2**63 - 1, description="base seed of the draws")
+    rul_watch_s: NonNegativeFloat = Field(default=86_400.0, description="RUL 5 % quantile level, watch, s")
+    rul_alert_s: NonNegativeFloat = Field(default=3_600.0, description="RUL 5 % quantile level, alert, s")
+    rul_segment_tol: Fraction = Field(default=0.01, description="largest ln(alpha) change per step")
+    rul_jump_tol: Fraction = Field(default=0.25, description="ln(alpha) change per cycle jump")
     rul_model_error: bool = Field(
-        True,
+        default=True,
         description="widen the RUL distribution by the stream's own record of predicted against "
         "realized wear (log-rate errors beyond what the filter's covariance explains)",
     )
     rul_converged_m_rel_std: PositiveFloat = Field(
-        0.2,
+        default=0.2,
         description="the prognosis reports 'learning' until the standard deviation of m-hat is "
         "below this fraction of m-hat (and alpha0 is known)",
     )
     status_hysteresis_windows: StrictInt = Field(
-        2,
+        default=2,
         ge=1,
         le=100,
         description="consecutive health windows that must agree before the consistency verdict "
@@ -523,6 +523,8 @@ _FRESH_NAN = (
     kern.ST_HIST_VAR,
     kern.ST_RUL_STATUS,
     *range(kern.ST_Y_HIST, kern.ST_Y_HIST + 6),
+    kern.ST_A0_BEST,
+    kern.ST_A0_VAR,
 )
 
 
@@ -899,6 +901,12 @@ def prognosis_at(config: DekfConfig, row: FloatArray, vec: FloatArray) -> RulEst
     if config.rul_model_error:
         _record_rate_error(vec, t_s, ell, var_ell)
     extra_var = rate_error_var(vec) if config.rul_model_error else 0.0
+    # an estimated alpha0 moves the failure level alpha0 (1 - Dn_f): a relative error eps of
+    # alpha0 changes the remaining ln(alpha) to go, ln(alpha / alpha_f), by -eps
+    a0_var = float(row[kern.RS_A0_VAR])
+    to_go = math.log(x[2] / (alpha0 * (1.0 - config.rul_failure_dn))) if x[2] > 0.0 else 0.0
+    if math.isfinite(a0_var) and a0_var > 0.0 and to_go > 0.0:
+        extra_var += a0_var / (to_go * to_go)
     settings = config.prognosis
     result = rulmod.prognose(
         config.plant_vector,
@@ -978,6 +986,7 @@ def _end_snapshot(vec: FloatArray, t_s: float, bins: int) -> FloatArray:
     row[kern.RS_P : kern.RS_P + 10] = vec[kern.ST_P : kern.ST_P + 10]
     row[kern.RS_FILLED] = vec[kern.ST_OB_FILLED]
     row[kern.RS_ALPHA0] = vec[kern.ST_ALPHA0]
+    row[kern.RS_A0_VAR] = vec[kern.ST_A0_VAR]
     if bins:
         order = (int(vec[kern.ST_OB_HEAD]) + np.arange(bins)) % bins
         row[kern.RS_RING : kern.RS_RING + bins] = vec[kern.ST_RING + order]

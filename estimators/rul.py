@@ -51,33 +51,33 @@ class SquareWaveLoad(EstimatorConfigModel):
     """Pulse current between ``low_a`` and ``high_a``; rising edges at ``t0_s + k period_s``
     (stream time), ``high_a`` during ``duty * period_s``."""
 
-    kind: Literal["square_wave"] = Field("square_wave", description="load law")
-    high_a: FiniteFloat = Field(20.0, description="current during the pulse, A")
-    low_a: FiniteFloat = Field(0.0, description="current between pulses, A")
-    period_s: FiniteFloat = Field(2.0, gt=0.0, description="period of the wave, s")
-    duty: FiniteFloat = Field(0.5, gt=0.0, lt=1.0, description="fraction of the period at high_a")
-    t0_s: FiniteFloat = Field(0.0, description="stream time of a rising edge, s")
+    kind: Literal["square_wave"] = Field(default="square_wave", description="load law")
+    high_a: FiniteFloat = Field(default=20.0, description="current during the pulse, A")
+    low_a: FiniteFloat = Field(default=0.0, description="current between pulses, A")
+    period_s: FiniteFloat = Field(default=2.0, gt=0.0, description="period of the wave, s")
+    duty: FiniteFloat = Field(default=0.5, gt=0.0, lt=1.0, description="fraction of the period at high_a")
+    t0_s: FiniteFloat = Field(default=0.0, description="stream time of a rising edge, s")
 
 
 class ConstantLoad(EstimatorConfigModel):
     """Constant current (the seed's own prognosis assumption, 20 A)."""
 
-    kind: Literal["constant"] = Field("constant", description="load law")
-    current_a: FiniteFloat = Field(20.0, description="the constant current, A")
+    kind: Literal["constant"] = Field(default="constant", description="load law")
+    current_a: FiniteFloat = Field(default=20.0, description="the constant current, A")
 
 
 class ProfileLoad(EstimatorConfigModel):
     """A recorded current profile repeated periodically: ``current_a[i]`` is held for
     ``durations_s[i]``; the profile starts at ``t0_s + k * sum(durations_s)`` (stream time)."""
 
-    kind: Literal["profile"] = Field("profile", description="load law")
+    kind: Literal["profile"] = Field(default="profile", description="load law")
     durations_s: tuple[Annotated[FiniteFloat, Field(gt=0.0)], ...] = Field(
         min_length=1, max_length=100_000, description="duration of each segment, s"
     )
     current_a: tuple[FiniteFloat, ...] = Field(
         min_length=1, max_length=100_000, description="current held over each segment, A"
     )
-    t0_s: FiniteFloat = Field(0.0, description="stream time at which a repetition starts, s")
+    t0_s: FiniteFloat = Field(default=0.0, description="stream time at which a repetition starts, s")
 
     @model_validator(mode="after")
     def _same_length(self) -> ProfileLoad:
@@ -95,11 +95,11 @@ class ObservedLoad(EstimatorConfigModel):
     bin first) is one period of the future load, starting now. Consecutive bins whose currents
     differ by at most ``merge_tolerance_a`` from the first of their run are merged."""
 
-    kind: Literal["observed"] = Field("observed", description="load law")
-    bin_samples: StrictInt = Field(20, ge=1, le=10_000_000, description="stream samples per bin")
-    bins: StrictInt = Field(200, ge=1, le=10_000, description="bins in the ring (one period)")
+    kind: Literal["observed"] = Field(default="observed", description="load law")
+    bin_samples: StrictInt = Field(default=20, ge=1, le=10_000_000, description="stream samples per bin")
+    bins: StrictInt = Field(default=200, ge=1, le=10_000, description="bins in the ring (one period)")
     merge_tolerance_a: FiniteFloat = Field(
-        0.05, ge=0.0, description="largest current difference merged into one segment, A"
+        default=0.05, ge=0.0, description="largest current difference merged into one segment, A"
     )
 
 

@@ -138,8 +138,10 @@ ST_QW = 70  # 2: estimated process noise of w1, w2 per step (covariance matching
 ST_Y_HIST = 72  # 6: last three valid measurements of w1, then of w2 (NaN: fewer)
 ST_QTL = 78  # 2: running median of |third difference| of w1, w2
 ST_N_QTL = 80  # 2: its sample counts
-ST_RING = 82  # bins currents, then bins durations
-ST_BASE_LEN = 82
+ST_A0_BEST = 82  # alpha0 candidate of least variance during the calibration (NaN: none)
+ST_A0_VAR = 83  # variance of ln(alpha0-hat) (0 when alpha0 is configured)
+ST_RING = 84  # bins currents, then bins durations
+ST_BASE_LEN = 84
 ST_BASE_LEN_V1 = 49
 
 # health-window rows
@@ -176,8 +178,9 @@ RS_X = 1
 RS_P = 5
 RS_FILLED = 15
 RS_ALPHA0 = 16
-RS_RING = 17
-RS_BASE_LEN = 17
+RS_A0_VAR = 17
+RS_RING = 18
+RS_BASE_LEN = 18
 
 # per-sample output rows
 OUT_W1 = 0
@@ -538,6 +541,8 @@ def _ekf_kernel(
     calib_int = st[ST_CALIB_INT]
     w_n_gated = st[ST_W_N_GATED]
     n_gated = st[ST_N_GATED]
+    a0_best = st[ST_A0_BEST]
+    a0_var = st[ST_A0_VAR]
     t_last = st[ST_T_LAST]
     u_held = st[ST_U_HELD]
     x0 = st[ST_X]
@@ -608,6 +613,7 @@ def _ekf_kernel(
             if math.isfinite(alpha0):
                 x2 = alpha0
                 p22 = cfg[CFG_P0 + 2]
+                a0_var = 0.0
             else:
                 # alpha0 unknown: a wide prior, estimated over the calibration segment
                 x2 = cfg[CFG_ALPHA_PRIOR]
@@ -920,10 +926,18 @@ def _ekf_kernel(
             if math.isfinite(alpha0):
                 x2 = min(x2, alpha0 * alpha_max)
             x2 = max(x2, 0.0)
-        # end of the alpha0 calibration: alpha0 = alpha-hat carried back over the segment's
-        # wear, alpha(t0) = alpha(t) exp(m int dv^2 dt) (eq. 7), the factor capped
-        if not math.isfinite(alpha0) and tk >= calib_end:
-            alpha0 = x2 * math.exp(min(max(x3, 0.0) * calib_int, CALIB_MAX_LOG))
+        # alpha0 calibration: each sample gives a candidate alpha-hat carried back over the
+        # wear so far, ln alpha0 = ln alpha(t) + m int_0^t dv^2 dt (eq. 7), of variance
+        # P_aa / alpha^2 + I^2 P_mm + 2 I P_am / alpha; the candidate of least variance is
+        # kept and fixed at the end of the segment (the log factor capped at CALIB_MAX_LOG)
+        if not math.isfinite(alpha0) and x2 > 0.0:
+            lf = min(max(x3, 0.0) * calib_int, CALIB_MAX_LOG)
+            v_a0 = p22 / (x2 * x2) + calib_int * calib_int * p33 + 2.0 * calib_int * p23 / x2
+            if not math.isfinite(a0_var) or v_a0 < a0_var:
+                a0_var = v_a0
+                a0_best = x2 * math.exp(lf)
+            if tk >= calib_end:
+                alpha0 = a0_best
         # --- per-sample outputs
         sg0 = math.sqrt(max(p00, 0.0))
         sg1 = math.sqrt(max(p11, 0.0))
@@ -1032,6 +1046,7 @@ def _ekf_kernel(
             row[RS_P + 9] = p33
             row[RS_FILLED] = ob_filled
             row[RS_ALPHA0] = alpha0
+            row[RS_A0_VAR] = a0_var
             for b in range(bins):
                 # oldest bin first
                 src = (ob_head + b) % bins
@@ -1139,6 +1154,8 @@ def _ekf_kernel(
     st[ST_N_GATED] = n_gated
     st[ST_QW] = qw0
     st[ST_QW + 1] = qw1
+    st[ST_A0_BEST] = a0_best
+    st[ST_A0_VAR] = a0_var
     st[ST_Y_HIST] = h00
     st[ST_Y_HIST + 1] = h01
     st[ST_Y_HIST + 2] = h02

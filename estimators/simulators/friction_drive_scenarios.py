@@ -190,7 +190,7 @@ def draw_drive(
     noise_factor: float | None = None,
     load: str | None = None,
     mismatch: bool | None = None,
-    skew: bool = True,
+    skew: bool | None = None,
 ) -> Drive:
     """A random drive; any of the named conditions may be fixed instead of drawn."""
     rng = np.random.default_rng([seed, 1])
@@ -198,6 +198,7 @@ def draw_drive(
     noise = noise_factor if noise_factor is not None else float(10.0 ** rng.uniform(0.0, 3.0))
     law = load if load is not None else str(rng.choice(["square", "telegraph", "mission"]))
     mis = bool(rng.integers(2)) if mismatch is None else mismatch
+    skew = bool(rng.integers(2)) if skew is None else skew
     if law == "square":
         high = rng.uniform(10.0, 30.0)
         params = {
@@ -282,8 +283,25 @@ def simulate_drive(
     fine_t = np.linspace(lo, probe_t[k], 1001)[1:]
     fine = integrate_at(p, drive.m, drive.alpha0, sw_t, sw_u, fine_t, fine_step_s)
     t_fail = float(fine_t[int(np.flatnonzero(fine[:, 2] <= alpha_fail)[0])])
+    t_s, channels, alpha = telemetry(drive, t_fail + margin_s, sw_t, sw_u, fine_step_s)
+    return DriveData(
+        t_s=t_s, channels=channels, alpha=alpha, dn=1.0 - alpha / drive.alpha0, t_fail_s=t_fail
+    )
+
+
+def telemetry(
+    drive: Drive,
+    duration_s: float,
+    sw_t: FloatArray | None = None,
+    sw_u: FloatArray | None = None,
+    fine_step_s: float = 1e-4,
+) -> tuple[FloatArray, dict[str, FloatArray], FloatArray]:
+    """(nominal times, measured channels, true alpha at the w1 instants) over ``duration_s``."""
+    p = drive.plant.as_array()
+    if sw_t is None or sw_u is None:
+        sw_t, sw_u = switches(drive, duration_s + 1.0)
     rng = np.random.default_rng([drive.seed, 2])
-    n = int((t_fail + margin_s) * drive.rate_hz)
+    n = int(duration_s * drive.rate_hz)
     t_nom = 0.5 / drive.rate_hz + np.arange(n) / drive.rate_hz
     rows = []
     for skew in drive.skew_s:
@@ -301,14 +319,7 @@ def simulate_drive(
         "motor_speed": rows[1][:, 0] + std1 * rng.standard_normal(n),
         "wheel_speed": rows[2][:, 1] + std2 * rng.standard_normal(n),
     }
-    alpha = rows[1][:, 2]
-    return DriveData(
-        t_s=t_nom,
-        channels=channels,
-        alpha=alpha,
-        dn=1.0 - alpha / drive.alpha0,
-        t_fail_s=t_fail,
-    )
+    return t_nom, channels, rows[1][:, 2].copy()
 
 
 def draw_failing_drive(

@@ -247,7 +247,14 @@ def test_paper_scenario_alpha_bounds_and_m_tracking() -> None:
     a 1 s convergence; m-hat follows the jump, and the slope of alpha-hat changes."""
     t, ch, tr = simulate_friction_drive(20.0, 1000.0, m_changes=[(10.0, 0.02)], seed=11)
     for f44 in (0.0, -100.0):
-        config = seed_config({"f44": f44, "rul_every_s": None, "nonnegative": False})
+        config = seed_config(
+            {
+                "f44": f44,
+                "rul_every_s": None,
+                "nonnegative": False,
+                "health_window_samples": 10_000,
+            }
+        )
         _, s, health, _, _ = run(config, t, ch)
         after = t >= 1.0
         inside = np.abs(s["alpha"] - tr["alpha"]) <= s["alpha_3sigma"]
