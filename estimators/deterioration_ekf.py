@@ -264,8 +264,9 @@ class DekfConfig(EstimatorConfigModel):
     rul_jump_tol: Fraction = Field(default=0.25, description="ln(alpha) change per cycle jump")
     rul_model_error: bool = Field(
         default=True,
-        description="widen the RUL distribution by the stream's own record of predicted against "
-        "realized wear (log-rate errors beyond what the filter's covariance explains)",
+        description="recalibrate the RUL on the stream's own record of predicted against "
+        "realized wear: times divided by the realized/predicted ratio, and the distribution "
+        "widened by the rate errors the filter's covariance does not explain",
     )
     rul_converged_m_rel_std: PositiveFloat = Field(
         default=0.2,
@@ -852,8 +853,8 @@ def _predicted_rate(
 
 def _record_rate_error(vec: FloatArray, t_s: float, ell: float, var_ell: float) -> None:
     """Compare the wear (``-d ln alpha``) realized since the previous prognosis with what that
-    prognosis predicted, and add the relative error and the part of it the filter's variances
-    explain to the stream's record."""
+    prognosis predicted, and add the relative error, the part of its square the filter's
+    variances explain, and both changes to the stream's record."""
     t0 = vec[kern.ST_HIST_T]
     rate = vec[kern.ST_HIST_RATE]
     if not (math.isfinite(t0) and math.isfinite(rate) and rate > 0.0 and t_s > t0):
@@ -864,18 +865,53 @@ def _record_rate_error(vec: FloatArray, t_s: float, ell: float, var_ell: float) 
         return
     err = (realized - predicted) / predicted
     explained = (var_ell + vec[kern.ST_HIST_VAR]) / (predicted * predicted)
+    # exponential forgetting: the record follows changes (a converging m-hat early on, a
+    # changing load) over about 1 / (1 - RECORD_FORGETTING) comparisons
+    for i in (
+        kern.ST_ERR_N,
+        kern.ST_ERR_SUM,
+        kern.ST_ERR_SUM2,
+        kern.ST_ERR_SUMV,
+        kern.ST_ERR_REAL,
+        kern.ST_ERR_PRED,
+    ):
+        vec[i] *= RECORD_FORGETTING
     vec[kern.ST_ERR_N] += 1.0
+    vec[kern.ST_ERR_SUM] += err
     vec[kern.ST_ERR_SUM2] += err * err
     vec[kern.ST_ERR_SUMV] += explained
+    vec[kern.ST_ERR_REAL] += realized
+    vec[kern.ST_ERR_PRED] += predicted
+
+
+#: Weight of the record kept per new comparison.
+RECORD_FORGETTING = 0.8
+#: Comparisons (forgetting-weighted) needed before the record recalibrates the prognosis;
+#: bounds of the ratio.
+MIN_RECORD = 2.5
+RATIO_BOUNDS = (0.2, 5.0)
+
+
+def rate_ratio(vec: FloatArray) -> float:
+    """Realized over predicted wear, summed over the stream's record (the sums telescope, so
+    the noise of alpha-hat and the load phase between prognoses do not accumulate); 1 before
+    ``MIN_RECORD`` comparisons. The prognosis divides its times by it (recalibration)."""
+    pred = vec[kern.ST_ERR_PRED]
+    if vec[kern.ST_ERR_N] < MIN_RECORD or not pred > 0.0:
+        return 1.0
+    return float(min(max(vec[kern.ST_ERR_REAL] / pred, RATIO_BOUNDS[0]), RATIO_BOUNDS[1]))
 
 
 def rate_error_var(vec: FloatArray) -> float:
-    """Variance of the relative wear-rate error the covariance does not explain, from the
-    stream's record (0 before two comparisons)."""
+    """Variance of the relative wear-rate error about the recalibrated rate that the
+    covariance does not explain, from the stream's record (0 before ``MIN_RECORD``
+    comparisons)."""
     n = vec[kern.ST_ERR_N]
-    if n < 2.0:
+    if n < MIN_RECORD:
         return 0.0
-    return float(max(0.0, (vec[kern.ST_ERR_SUM2] - vec[kern.ST_ERR_SUMV]) / n))
+    c = rate_ratio(vec) - 1.0
+    spread = vec[kern.ST_ERR_SUM2] - 2.0 * c * vec[kern.ST_ERR_SUM] + n * c * c
+    return float(max(0.0, (spread - vec[kern.ST_ERR_SUMV]) / n))
 
 
 def prognosis_at(config: DekfConfig, row: FloatArray, vec: FloatArray) -> RulEstimate | None:
@@ -901,6 +937,7 @@ def prognosis_at(config: DekfConfig, row: FloatArray, vec: FloatArray) -> RulEst
     if config.rul_model_error:
         _record_rate_error(vec, t_s, ell, var_ell)
     extra_var = rate_error_var(vec) if config.rul_model_error else 0.0
+    ratio = rate_ratio(vec) if config.rul_model_error else 1.0
     # an estimated alpha0 moves the failure level alpha0 (1 - Dn_f): a relative error eps of
     # alpha0 changes the remaining ln(alpha) to go, ln(alpha / alpha_f), by -eps
     a0_var = float(row[kern.RS_A0_VAR])
@@ -918,6 +955,7 @@ def prognosis_at(config: DekfConfig, row: FloatArray, vec: FloatArray) -> RulEst
         settings,
         log_time_var=extra_var,
         walk_rel_var_per_s=config.m_walk_rel**2,
+        time_scale=1.0 / ratio,
     )
     status, reasons = serving_status(
         vec, config, _none_if_nan(dn), result.q05_s, float(x[3]), float(cov[3, 3])
@@ -925,7 +963,12 @@ def prognosis_at(config: DekfConfig, row: FloatArray, vec: FloatArray) -> RulEst
     vec[kern.ST_HIST_T] = t_s
     vec[kern.ST_HIST_ELL] = ell
     vec[kern.ST_HIST_VAR] = var_ell
-    vec[kern.ST_HIST_RATE] = _predicted_rate(config, segments, x[2], x[3])
+    # the record compares only predictions made once m-hat has converged (the wear rate of a
+    # converging filter says nothing about the model's error)
+    converged = x[3] > 0.0 and math.sqrt(max(cov[3, 3], 0.0)) <= config.rul_converged_m_rel_std * x[3]
+    vec[kern.ST_HIST_RATE] = (
+        _predicted_rate(config, segments, x[2], x[3]) if converged else math.nan
+    )
     vec[kern.ST_RUL_STATUS] = STATUSES.index(status)
     assumption: dict[str, Any] = {
         "load": rulmod.load_to_dict(config.rul_load),
@@ -936,6 +979,7 @@ def prognosis_at(config: DekfConfig, row: FloatArray, vec: FloatArray) -> RulEst
         "m_constant": config.m_walk_rel == 0.0,
         "m_walk_rel_per_sqrt_s": config.m_walk_rel,
         "model_error_rel_std": math.sqrt(extra_var),
+        "wear_rate_recalibration": ratio,
         "model_error_comparisons": int(vec[kern.ST_ERR_N]),
         "failure_dn": config.rul_failure_dn,
         "alpha0": alpha0,

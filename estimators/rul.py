@@ -295,6 +295,7 @@ def prognose(
     *,
     log_time_var: float = 0.0,
     walk_rel_var_per_s: float = 0.0,
+    time_scale: float = 1.0,
 ) -> PrognosisResult:
     """Monte Carlo RUL and deterministic bounds from the estimate ``x`` and covariance ``cov``.
 
@@ -312,6 +313,8 @@ def prognose(
         walk_rel_var_per_s: relative random-walk variance of m per second (the filter's own
             model of a slowly varying m, seed assumption iii): over a remaining life T the mean
             of the walk has relative variance ``walk T / 3``, added to ``s^2`` per trajectory.
+        time_scale: factor on every time (Monte Carlo and bounds): the recalibration of the
+            wear rate on the stream's record (``1 / (realized / predicted)``).
 
     Since the time to failure is inversely proportional to the mean wear rate, a relative rate
     error ``eps`` scales it by ``1 / (1 + eps)``, taken as ``exp(-eps)`` (lognormal, so the
@@ -340,6 +343,7 @@ def prognose(
         finite = np.isfinite(times)
         var = log_time_var + walk_rel_var_per_s * np.where(finite, times, 0.0) / 3.0
         times = np.where(finite, times * np.exp(np.sqrt(var) * z_rate), times)
+    times = times * time_scale
     c = settings.bound_c
     s_alpha = math.sqrt(max(float(cov[2, 2]), 0.0))
     s_m = math.sqrt(max(float(cov[3, 3]), 0.0))
@@ -359,6 +363,8 @@ def prognose(
         settings.eps_seg,
         settings.eps_jump,
     )
+    opt = opt * time_scale
+    pes = pes * time_scale
     reached = np.isfinite(times)
     sorted_times = np.sort(np.where(reached, times, np.inf))
     all_reached = bool(reached.all())

@@ -53,8 +53,8 @@ def load_config(drive: fs.Drive) -> dict[str, Any]:
             "current_a": list(currents),
             "t0_s": -p["phase_s"],
         }
-    # the ring covers 20 s of recent current in 0.1 s bins
-    return {"kind": "observed", "bin_samples": max(1, round(0.1 * drive.rate_hz)), "bins": 200}
+    # the ring covers 30 s of recent current in 0.1 s bins
+    return {"kind": "observed", "bin_samples": max(1, round(0.1 * drive.rate_hz)), "bins": 300}
 
 
 def user_config(drive: fs.Drive, life_s: float, alpha0_known: bool) -> dict[str, Any]:

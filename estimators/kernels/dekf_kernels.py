@@ -140,8 +140,11 @@ ST_QTL = 78  # 2: running median of |third difference| of w1, w2
 ST_N_QTL = 80  # 2: its sample counts
 ST_A0_BEST = 82  # alpha0 candidate of least variance during the calibration (NaN: none)
 ST_A0_VAR = 83  # variance of ln(alpha0-hat) (0 when alpha0 is configured)
-ST_RING = 84  # bins currents, then bins durations
-ST_BASE_LEN = 84
+ST_ERR_SUM = 84  # log-rate error record: sum of the relative errors
+ST_ERR_REAL = 85  # sum of the realized changes of -ln(alpha) between prognoses
+ST_ERR_PRED = 86  # sum of the predicted changes
+ST_RING = 87  # bins currents, then bins durations
+ST_BASE_LEN = 87
 ST_BASE_LEN_V1 = 49
 
 # health-window rows

@@ -187,10 +187,10 @@ def test_failed_once_the_threshold_is_crossed_and_statuses_served() -> None:
     assert "rul_threshold_crossed" in kinds
 
 
-def test_model_error_widens_intervals_from_the_streams_own_record() -> None:
-    """The future load assumed 30 % too weak: the realized wear outruns the predictions, the
-    record measures it and the intervals widen (rul_model_error on) so they cover the truth
-    more often than without."""
+def test_model_error_recalibrates_on_the_streams_own_record() -> None:
+    """The future load assumed 30 % too weak: the realized wear outruns the predictions; the
+    record measures the ratio and recalibrates the prognosis (rul_model_error on), which then
+    covers the truth more often and errs less than without."""
     drive = drive_of(505, m=0.01, failure_dn=0.5)
     data = fs.simulate_drive(drive, max_s=600.0)
     assert data is not None
@@ -212,6 +212,7 @@ def test_model_error_widens_intervals_from_the_streams_own_record() -> None:
         },
     }
     cover = {}
+    errs = {}
     for on in (True, False):
         _, out = run({**raw, "rul_model_error": on}, data.t_s, data.channels)
         late = [r for r in out.rul if r.t_s > 0.3 * data.t_fail_s and r.t_s < data.t_fail_s]
@@ -223,9 +224,13 @@ def test_model_error_widens_intervals_from_the_streams_own_record() -> None:
                 for r, x in zip(late, truth, strict=True)
             ]
         )
+        errs[on] = float(
+            np.median([abs((r.q50_s or 0.0) - x) / x for r, x in zip(late, truth, strict=True)])
+        )
         if on:
-            assert late[-1].assumption["model_error_rel_std"] > 0.05
+            assert late[-1].assumption["wear_rate_recalibration"] > 1.2
     assert cover[True] > cover[False] + 0.3
+    assert errs[True] < 0.5 * errs[False]
 
 
 def test_prognose_widening_is_lognormal_and_leaves_the_state_draws() -> None:
