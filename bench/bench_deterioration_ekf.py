@@ -162,7 +162,7 @@ def main() -> None:
     rows: list[tuple[str, str]] = []
     for label, extra in (
         ("defaults (interval input, noise estimation, gating, projection)", {"alpha0": 10.0}),
-        ("defaults, alpha0 estimated", {}),
+        ("defaults, alpha0 estimated", {"alpha0": None}),
         ("seed Q, F44 = 0", {}),
         ("prognosis tuning", {"q_diag": PROGNOSIS_Q}),
         ("seed Q, F44 = -100", {"f44": -100.0}),

@@ -196,9 +196,10 @@ class DekfConfig(EstimatorConfigModel):
         "is replaced by (alpha0_prior_rel_std alpha0_prior)^2 when alpha0 is estimated",
     )
     alpha0: PositiveFloat | None = Field(
-        default=None,
-        description="contact quality at Dn = 0, N s/m; None: estimated over the first "
-        "alpha0_calibration_s seconds of the stream (the unit must start healthy)",
+        default=10.0,
+        description="contact quality at Dn = 0, N s/m (default: the seed's section 5.1 value); "
+        "null: estimated over the first alpha0_calibration_s seconds of the stream (the unit "
+        "must start healthy)",
     )
     alpha0_prior: PositiveFloat = Field(
         default=10.0, description="initial guess of alpha while alpha0 is estimated, N s/m"
@@ -264,9 +265,9 @@ class DekfConfig(EstimatorConfigModel):
     rul_jump_tol: Fraction = Field(default=0.25, description="ln(alpha) change per cycle jump")
     rul_model_error: bool = Field(
         default=True,
-        description="recalibrate the RUL on the stream's own record of predicted against "
-        "realized wear: times divided by the realized/predicted ratio, and the distribution "
-        "widened by the rate errors the filter's covariance does not explain",
+        description="widen the RUL distribution by the stream's own record of predicted "
+        "against realized wear (the relative rate errors the filter's covariance does not "
+        "explain)",
     )
     rul_converged_m_rel_std: PositiveFloat = Field(
         default=0.2,
@@ -895,23 +896,31 @@ RATIO_BOUNDS = (0.2, 5.0)
 def rate_ratio(vec: FloatArray) -> float:
     """Realized over predicted wear, summed over the stream's record (the sums telescope, so
     the noise of alpha-hat and the load phase between prognoses do not accumulate); 1 before
-    ``MIN_RECORD`` comparisons. The prognosis divides its times by it (recalibration)."""
+    ``MIN_RECORD`` comparisons or while it is within two standard errors of 1. Reported with
+    each prognosis, not applied: dividing the times by it was tried and made the validation
+    worse, since the record of a filter whose m-hat is still converging (over-confidently, the
+    usual EKF start) says more about the convergence than about the model."""
     pred = vec[kern.ST_ERR_PRED]
-    if vec[kern.ST_ERR_N] < MIN_RECORD or not pred > 0.0:
+    n = vec[kern.ST_ERR_N]
+    if n < MIN_RECORD or not pred > 0.0:
         return 1.0
-    return float(min(max(vec[kern.ST_ERR_REAL] / pred, RATIO_BOUNDS[0]), RATIO_BOUNDS[1]))
+    ratio = min(max(vec[kern.ST_ERR_REAL] / pred, RATIO_BOUNDS[0]), RATIO_BOUNDS[1])
+    # applied only where it stands out of the record's own scatter (two standard errors): a
+    # random load (telegraph) makes the short-term ratio noisy without any bias to correct
+    c = ratio - 1.0
+    scatter = (vec[kern.ST_ERR_SUM2] - 2.0 * c * vec[kern.ST_ERR_SUM] + n * c * c) / n
+    if c * c <= 4.0 * max(scatter, 0.0) / n:
+        return 1.0
+    return float(ratio)
 
 
 def rate_error_var(vec: FloatArray) -> float:
-    """Variance of the relative wear-rate error about the recalibrated rate that the
-    covariance does not explain, from the stream's record (0 before ``MIN_RECORD``
-    comparisons)."""
+    """Mean square of the relative wear-rate errors (bias included) that the covariance does
+    not explain, from the stream's record (0 before ``MIN_RECORD`` comparisons)."""
     n = vec[kern.ST_ERR_N]
     if n < MIN_RECORD:
         return 0.0
-    c = rate_ratio(vec) - 1.0
-    spread = vec[kern.ST_ERR_SUM2] - 2.0 * c * vec[kern.ST_ERR_SUM] + n * c * c
-    return float(max(0.0, (spread - vec[kern.ST_ERR_SUMV]) / n))
+    return float(max(0.0, (vec[kern.ST_ERR_SUM2] - vec[kern.ST_ERR_SUMV]) / n))
 
 
 def prognosis_at(config: DekfConfig, row: FloatArray, vec: FloatArray) -> RulEstimate | None:
@@ -955,7 +964,6 @@ def prognosis_at(config: DekfConfig, row: FloatArray, vec: FloatArray) -> RulEst
         settings,
         log_time_var=extra_var,
         walk_rel_var_per_s=config.m_walk_rel**2,
-        time_scale=1.0 / ratio,
     )
     status, reasons = serving_status(
         vec, config, _none_if_nan(dn), result.q05_s, float(x[3]), float(cov[3, 3])
@@ -979,7 +987,7 @@ def prognosis_at(config: DekfConfig, row: FloatArray, vec: FloatArray) -> RulEst
         "m_constant": config.m_walk_rel == 0.0,
         "m_walk_rel_per_sqrt_s": config.m_walk_rel,
         "model_error_rel_std": math.sqrt(extra_var),
-        "wear_rate_recalibration": ratio,
+        "wear_rate_ratio": ratio,
         "model_error_comparisons": int(vec[kern.ST_ERR_N]),
         "failure_dn": config.rul_failure_dn,
         "alpha0": alpha0,
@@ -1249,7 +1257,7 @@ def warm_up() -> None:
     channels["motor_speed"][5] = np.nan
     for raw in (
         {"alpha0": 10.0, "f44": -100.0},
-        {"alpha0_calibration_s": 0.05, "input_model": "hold", "noise_adaptation": False},
+        {"alpha0": None, "alpha0_calibration_s": 0.05, "input_model": "hold", "noise_adaptation": False},
     ):
         config = parse_config(
             {

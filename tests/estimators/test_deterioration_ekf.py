@@ -639,7 +639,8 @@ def test_config_round_trip_and_defaults() -> None:
     _json_safe(d)
     assert de.parse_config(d) == config
     assert de.parse_config(json.loads(json.dumps(d))) == config
-    assert d["alpha0"] is None and d["input_model"] == "interval" and d["noise_adaptation"]
+    assert d["alpha0"] == 10.0 and d["input_model"] == "interval" and d["noise_adaptation"]
+    assert de.parse_config({"alpha0": None}).alpha0 is None
     json.dumps(de.CONFIG_MODEL.model_json_schema())
     config = de.parse_config(SEED)
     d = de.config_to_dict(config)

@@ -116,7 +116,9 @@ def test_projection_keeps_the_physics() -> None:
 def test_alpha0_is_estimated_from_the_healthy_start() -> None:
     drive = drive_of(503, alpha0=12.7, m=0.01)
     t, ch, alpha = fs.telemetry(drive, 40.0)
-    state, out = run({"alpha0_calibration_s": 10.0, "health_window_samples": 500}, t, ch)
+    state, out = run(
+        {"alpha0": None, "alpha0_calibration_s": 10.0, "health_window_samples": 500}, t, ch
+    )
     assert abs(state.alpha0 / drive.alpha0 - 1.0) < 0.01
     calibrating = t < 9.9
     assert np.all(np.isnan(out.samples["dn"][calibrating]))
@@ -187,10 +189,10 @@ def test_failed_once_the_threshold_is_crossed_and_statuses_served() -> None:
     assert "rul_threshold_crossed" in kinds
 
 
-def test_model_error_recalibrates_on_the_streams_own_record() -> None:
+def test_model_error_widens_intervals_from_the_streams_own_record() -> None:
     """The future load assumed 30 % too weak: the realized wear outruns the predictions; the
-    record measures the ratio and recalibrates the prognosis (rul_model_error on), which then
-    covers the truth more often and errs less than without."""
+    record measures it and widens the intervals (rul_model_error on), which then cover the
+    truth more often than without."""
     drive = drive_of(505, m=0.01, failure_dn=0.5)
     data = fs.simulate_drive(drive, max_s=600.0)
     assert data is not None
@@ -228,9 +230,9 @@ def test_model_error_recalibrates_on_the_streams_own_record() -> None:
             np.median([abs((r.q50_s or 0.0) - x) / x for r, x in zip(late, truth, strict=True)])
         )
         if on:
-            assert late[-1].assumption["wear_rate_recalibration"] > 1.2
+            assert late[-1].assumption["wear_rate_ratio"] > 1.2
+            assert late[-1].assumption["model_error_rel_std"] > 0.1
     assert cover[True] > cover[False] + 0.3
-    assert errs[True] < 0.5 * errs[False]
 
 
 def test_prognose_widening_is_lognormal_and_leaves_the_state_draws() -> None:
