@@ -24,6 +24,17 @@ from estimators.simulators.friction_drive import FrictionDriveParams, simulate_f
 PROGNOSIS_Q = [0.0, 0.0, 0.0, 1e-13]
 
 
+#: The seed's filter (sections 4.2, 5.2): known alpha0, held input, fixed R and Q, no gating.
+SEED: dict[str, Any] = {
+    "alpha0": 10.0,
+    "input_model": "hold",
+    "noise_adaptation": False,
+    "gate_sigma": None,
+    "m_walk_rel": 0.0,
+    "q_diag": [0.0, 0.0, 0.0, 0.02**2 / 12.0],
+}
+
+
 def best_of(fn: Callable[[], Any], repeats: int) -> float:
     best = float("inf")
     for _ in range(repeats):
@@ -41,7 +52,7 @@ def filterpy_seconds_per_sample(
     estimator's discretization); otherwise Euler, ``Phi = I + F dt``, ``x + f(x) dt`` (filterpy's
     cheapest use, not the same discretization)."""
     p = FrictionDriveParams()
-    config = de.DekfConfig()
+    config = de.parse_config(SEED)
     h = np.eye(4)[:2]
     aug = np.zeros((8, 8))
     aug[:4, 4:] = np.eye(4)
@@ -99,16 +110,16 @@ def rul_cases() -> list[tuple[str, np.ndarray, np.ndarray, tuple[np.ndarray, np.
     for label, m, extra, load in (
         ("seed scenario at t = 15 s (fast wear, ~75 periods)", 0.01, {}, rul.SquareWaveLoad()),
         ("m = 0.001 (slow wear, cycle jumps)", 0.001, {}, rul.SquareWaveLoad()),
-        ("constant 20 A (the seed's assumption)", 0.01, {}, rul.ConstantLoad(20.0)),
+        ("constant 20 A (the seed's assumption)", 0.01, {}, rul.ConstantLoad(current_a=20.0)),
         (
             "seed Q: wide spread of m",
             0.01,
-            {"q_diag": list(de.DekfConfig().q_diag)},
+            {"q_diag": list(de.parse_config(SEED).q_diag)},
             rul.SquareWaveLoad(),
         ),
     ):
         t, ch, _ = simulate_friction_drive(15.0, 1000.0, m=m, seed=3)
-        config = de.parse_config({"q_diag": PROGNOSIS_Q, "rul_every_s": None, **extra})
+        config = de.parse_config({**SEED, "q_diag": PROGNOSIS_Q, "rul_every_s": None, **extra})
         state, _ = de.step(config, de.initial_state(config), Batch(t, ch))
         segments = rul.load_segments(load, float(t[-1]))
         assert segments is not None
@@ -128,6 +139,19 @@ def rul_cases() -> list[tuple[str, np.ndarray, np.ndarray, tuple[np.ndarray, np.
     cases.append(
         (f"observed load ({len(segments[0])} segments per 8 s)", state.x, state.P, segments, 10.0)
     )
+    # the recorded mission profile of the drive generator (700 segments of 20 ms per 14 s)
+    from estimators.simulators.friction_drive_scenarios import mission_profile
+
+    durations, currents = mission_profile(1.0)
+    t, ch, _ = simulate_friction_drive(15.0, 1000.0, seed=3)
+    config = de.parse_config({**SEED, "q_diag": PROGNOSIS_Q, "rul_every_s": None})
+    state, _ = de.step(config, de.initial_state(config), Batch(t, ch))
+    profile = rul.ProfileLoad(durations_s=durations, current_a=currents)
+    segments = rul.load_segments(profile, float(t[-1]))
+    assert segments is not None
+    cases.append(
+        (f"mission profile ({len(segments[0])} segments per 14 s)", state.x, state.P, segments, 10.0)
+    )
     return cases
 
 
@@ -137,12 +161,15 @@ def main() -> None:
     t, ch, _ = simulate_friction_drive(n_long / 1000.0, 1000.0, m=0.0005, seed=1)
     rows: list[tuple[str, str]] = []
     for label, extra in (
+        ("defaults (interval input, noise estimation, gating, projection)", {"alpha0": 10.0}),
+        ("defaults, alpha0 estimated", {"alpha0": None}),
         ("seed Q, F44 = 0", {}),
         ("prognosis tuning", {"q_diag": PROGNOSIS_Q}),
         ("seed Q, F44 = -100", {"f44": -100.0}),
         ("seed Q, expm_tol = 1e-12", {"expm_tol": 1e-12}),
     ):
-        config = de.parse_config({"rul_every_s": None, **extra})
+        base = {} if label.startswith("defaults") else SEED
+        config = de.parse_config({**base, "rul_every_s": None, **extra})
         state0 = de.initial_state(config)
         batch = Batch(t, ch)
         s_step = best_of(
@@ -173,7 +200,7 @@ def main() -> None:
         )
         rows.append(("  ratio to step() (seed Q, F44 = 0)", f"{s_fp / per_sample:8.0f} x"))
 
-    config = de.parse_config({"rul_every_s": None})
+    config = de.parse_config({**SEED, "rul_every_s": None})
     state0 = de.initial_state(config)
     b10k = Batch(t[:10_000], {k: v[:10_000] for k, v in ch.items()})
     b1 = Batch(t[:1], {k: v[:1] for k, v in ch.items()})
@@ -194,9 +221,11 @@ def main() -> None:
     settings = rul.PrognosisSettings(n_trajectories=1000)
     for label, x, cov, segments, alpha0 in rul_cases():
         res = rul.prognose(plant, alpha0, x, cov, 15.0, segments, settings)
+        # with the widening of the defaults on (model-error record, random walk of m)
         s_rul = best_of(
             lambda x=x, cov=cov, segments=segments, alpha0=alpha0: rul.prognose(
-                plant, alpha0, x, cov, 15.0, segments, settings
+                plant, alpha0, x, cov, 15.0, segments, settings, log_time_var=0.01,
+                walk_rel_var_per_s=1e-6, time_scale=1.02,
             ),
             5,
         )

@@ -20,13 +20,21 @@ from __future__ import annotations
 
 import math
 import struct
-from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
+from pydantic import (
+    AllowInfNan,
+    Field,
+    Strict,
+    StrictInt,
+    TypeAdapter,
+    ValidationError,
+    model_validator,
+)
 
-from estimators.base import ConfigError, FloatArray
+from estimators.base import ConfigError, EstimatorConfigModel, FloatArray
 from estimators.checks import finite_or_none as _finite_or_none
 from estimators.kernels import dekf_kernels as kern
 
@@ -36,171 +44,97 @@ CONSTANT_SEGMENT_S = 1.0
 
 
 # ----------------------------------------------------------------------------- load laws
-@dataclass(frozen=True)
-class SquareWaveLoad:
+FiniteFloat = Annotated[float, Strict(), AllowInfNan(False)]
+
+
+class SquareWaveLoad(EstimatorConfigModel):
     """Pulse current between ``low_a`` and ``high_a``; rising edges at ``t0_s + k period_s``
     (stream time), ``high_a`` during ``duty * period_s``."""
 
-    high_a: float = 20.0
-    low_a: float = 0.0
-    period_s: float = 2.0
-    duty: float = 0.5
-    t0_s: float = 0.0
-    kind: Literal["square_wave"] = "square_wave"
+    kind: Literal["square_wave"] = Field(default="square_wave", description="load law")
+    high_a: FiniteFloat = Field(default=20.0, description="current during the pulse, A")
+    low_a: FiniteFloat = Field(default=0.0, description="current between pulses, A")
+    period_s: FiniteFloat = Field(default=2.0, gt=0.0, description="period of the wave, s")
+    duty: FiniteFloat = Field(default=0.5, gt=0.0, lt=1.0, description="fraction of the period at high_a")
+    t0_s: FiniteFloat = Field(default=0.0, description="stream time of a rising edge, s")
 
 
-@dataclass(frozen=True)
-class ConstantLoad:
+class ConstantLoad(EstimatorConfigModel):
     """Constant current (the seed's own prognosis assumption, 20 A)."""
 
-    current_a: float = 20.0
-    kind: Literal["constant"] = "constant"
+    kind: Literal["constant"] = Field(default="constant", description="load law")
+    current_a: FiniteFloat = Field(default=20.0, description="the constant current, A")
 
 
-@dataclass(frozen=True)
-class ProfileLoad:
+class ProfileLoad(EstimatorConfigModel):
     """A recorded current profile repeated periodically: ``current_a[i]`` is held for
     ``durations_s[i]``; the profile starts at ``t0_s + k * sum(durations_s)`` (stream time)."""
 
-    durations_s: tuple[float, ...]
-    current_a: tuple[float, ...]
-    t0_s: float = 0.0
-    kind: Literal["profile"] = "profile"
+    kind: Literal["profile"] = Field(default="profile", description="load law")
+    durations_s: tuple[Annotated[FiniteFloat, Field(gt=0.0)], ...] = Field(
+        min_length=1, max_length=100_000, description="duration of each segment, s"
+    )
+    current_a: tuple[FiniteFloat, ...] = Field(
+        min_length=1, max_length=100_000, description="current held over each segment, A"
+    )
+    t0_s: FiniteFloat = Field(default=0.0, description="stream time at which a repetition starts, s")
+
+    @model_validator(mode="after")
+    def _same_length(self) -> ProfileLoad:
+        if len(self.durations_s) != len(self.current_a):
+            raise ValueError(
+                "durations_s and current_a must be of equal length "
+                f"(got {len(self.durations_s)} and {len(self.current_a)})"
+            )
+        return self
 
 
-@dataclass(frozen=True)
-class ObservedLoad:
+class ObservedLoad(EstimatorConfigModel):
     """The recently applied current, repeated: the filter bins the held current over
     ``bin_samples`` stream samples into a ring of ``bins`` bins; at a prognosis the ring (oldest
     bin first) is one period of the future load, starting now. Consecutive bins whose currents
     differ by at most ``merge_tolerance_a`` from the first of their run are merged."""
 
-    bin_samples: int = 20
-    bins: int = 200
-    merge_tolerance_a: float = 0.05
-    kind: Literal["observed"] = "observed"
+    kind: Literal["observed"] = Field(default="observed", description="load law")
+    bin_samples: StrictInt = Field(default=20, ge=1, le=10_000_000, description="stream samples per bin")
+    bins: StrictInt = Field(default=200, ge=1, le=10_000, description="bins in the ring (one period)")
+    merge_tolerance_a: FiniteFloat = Field(
+        default=0.05, ge=0.0, description="largest current difference merged into one segment, A"
+    )
 
 
-LoadAssumption = SquareWaveLoad | ConstantLoad | ProfileLoad | ObservedLoad
+LoadAssumption = Annotated[
+    SquareWaveLoad | ConstantLoad | ProfileLoad | ObservedLoad, Field(discriminator="kind")
+]
+_LOAD_ADAPTER: TypeAdapter[SquareWaveLoad | ConstantLoad | ProfileLoad | ObservedLoad] = (
+    TypeAdapter(LoadAssumption)
+)
 
 
-def _number(name: str, value: Any, *, positive: bool = False, unit: bool = False) -> float:
-    if not isinstance(value, int | float) or isinstance(value, bool):
-        raise ConfigError(f"{name}: expected a number, got {value!r}")
-    v = float(value)
-    if not math.isfinite(v):
-        raise ConfigError(f"{name}: expected a finite number, got {value!r}")
-    if positive and v <= 0.0:
-        raise ConfigError(f"{name}: expected a positive number, got {value!r}")
-    if unit and not 0.0 < v < 1.0:
-        raise ConfigError(f"{name}: expected a number in (0, 1), got {value!r}")
-    return v
-
-
-def _integer(name: str, value: Any, lo: int, hi: int) -> int:
-    if not isinstance(value, int) or isinstance(value, bool) or not lo <= value <= hi:
-        raise ConfigError(f"{name}: expected an integer in [{lo}, {hi}], got {value!r}")
-    return value
-
-
-def _check_keys(name: str, raw: Mapping[str, Any], known: set[str]) -> None:
-    unknown = sorted(set(raw) - known)
-    if unknown:
-        raise ConfigError(f"{name}.{unknown[0]}: unknown field (known: {', '.join(sorted(known))})")
-
-
-def parse_load(raw: Any, name: str = "rul_load") -> LoadAssumption:
+def parse_load(raw: Any, name: str = "rul_load") -> SquareWaveLoad | ConstantLoad | ProfileLoad | ObservedLoad:
     """Validate a JSON-like load assumption ``{"kind": ..., ...}``.
 
     Raises:
         ConfigError: unknown kind or field, non-finite numbers, non-positive period or
-            durations, duty outside (0, 1), profile arrays of different lengths or empty.
+            durations, duty outside (0, 1), profile arrays of different lengths or empty
+            (the message names the field, prefixed by ``name``).
     """
-    if not isinstance(raw, Mapping):
-        raise ConfigError(f"{name}: expected an object with a 'kind'")
-    kind = raw.get("kind")
-    if kind == "square_wave":
-        d = SquareWaveLoad()
-        _check_keys(name, raw, {"kind", "high_a", "low_a", "period_s", "duty", "t0_s"})
-        return SquareWaveLoad(
-            high_a=_number(f"{name}.high_a", raw.get("high_a", d.high_a)),
-            low_a=_number(f"{name}.low_a", raw.get("low_a", d.low_a)),
-            period_s=_number(f"{name}.period_s", raw.get("period_s", d.period_s), positive=True),
-            duty=_number(f"{name}.duty", raw.get("duty", d.duty), unit=True),
-            t0_s=_number(f"{name}.t0_s", raw.get("t0_s", d.t0_s)),
-        )
-    if kind == "constant":
-        _check_keys(name, raw, {"kind", "current_a"})
-        return ConstantLoad(
-            current_a=_number(f"{name}.current_a", raw.get("current_a", ConstantLoad.current_a))
-        )
-    if kind == "profile":
-        _check_keys(name, raw, {"kind", "durations_s", "current_a", "t0_s"})
-        durations = raw.get("durations_s")
-        currents = raw.get("current_a")
-        if not isinstance(durations, list | tuple) or not isinstance(currents, list | tuple):
-            raise ConfigError(f"{name}: a profile needs the lists durations_s and current_a")
-        if len(durations) != len(currents) or not durations:
-            raise ConfigError(
-                f"{name}: durations_s and current_a must be non-empty and of equal length "
-                f"(got {len(durations)} and {len(currents)})"
-            )
-        if len(durations) > 100_000:
-            raise ConfigError(f"{name}: at most 100000 profile segments")
-        return ProfileLoad(
-            durations_s=tuple(
-                _number(f"{name}.durations_s[{i}]", v, positive=True)
-                for i, v in enumerate(durations)
-            ),
-            current_a=tuple(_number(f"{name}.current_a[{i}]", v) for i, v in enumerate(currents)),
-            t0_s=_number(f"{name}.t0_s", raw.get("t0_s", 0.0)),
-        )
-    if kind == "observed":
-        d2 = ObservedLoad()
-        _check_keys(name, raw, {"kind", "bin_samples", "bins", "merge_tolerance_a"})
-        tol = _number(
-            f"{name}.merge_tolerance_a", raw.get("merge_tolerance_a", d2.merge_tolerance_a)
-        )
-        if tol < 0.0:
-            raise ConfigError(f"{name}.merge_tolerance_a: expected a number >= 0, got {tol!r}")
-        return ObservedLoad(
-            bin_samples=_integer(
-                f"{name}.bin_samples", raw.get("bin_samples", d2.bin_samples), 1, 10_000_000
-            ),
-            bins=_integer(f"{name}.bins", raw.get("bins", d2.bins), 1, 10_000),
-            merge_tolerance_a=tol,
-        )
-    raise ConfigError(
-        f"{name}.kind: expected 'square_wave', 'constant', 'profile' or 'observed', got {kind!r}"
-    )
+    try:
+        return _LOAD_ADAPTER.validate_python(raw)
+    except ValidationError as exc:
+        parts = []
+        for err in exc.errors(include_url=False):
+            loc = [str(p) for p in err["loc"]]
+            # drop the union tag pydantic puts first (the kind) from the location
+            if loc and loc[0] in ("square_wave", "constant", "profile", "observed"):
+                loc = loc[1:]
+            parts.append(".".join([name, *loc]) + f": {err['msg']}")
+        raise ConfigError("; ".join(parts)) from None
 
 
-def load_to_dict(load: LoadAssumption) -> dict[str, Any]:
+def load_to_dict(load: SquareWaveLoad | ConstantLoad | ProfileLoad | ObservedLoad) -> dict[str, Any]:
     """The load assumption as a JSON-serializable mapping (the form :func:`parse_load` takes)."""
-    if isinstance(load, SquareWaveLoad):
-        return {
-            "kind": load.kind,
-            "high_a": load.high_a,
-            "low_a": load.low_a,
-            "period_s": load.period_s,
-            "duty": load.duty,
-            "t0_s": load.t0_s,
-        }
-    if isinstance(load, ConstantLoad):
-        return {"kind": load.kind, "current_a": load.current_a}
-    if isinstance(load, ProfileLoad):
-        return {
-            "kind": load.kind,
-            "durations_s": list(load.durations_s),
-            "current_a": list(load.current_a),
-            "t0_s": load.t0_s,
-        }
-    return {
-        "kind": load.kind,
-        "bin_samples": load.bin_samples,
-        "bins": load.bins,
-        "merge_tolerance_a": load.merge_tolerance_a,
-    }
+    return load.model_dump(mode="json")
 
 
 def merge_bins(
@@ -236,7 +170,7 @@ def _rotate(
 
 
 def load_segments(
-    load: LoadAssumption,
+    load: SquareWaveLoad | ConstantLoad | ProfileLoad | ObservedLoad,
     t_s: float,
     observed: tuple[FloatArray, FloatArray] | None = None,
 ) -> tuple[FloatArray, FloatArray] | None:
@@ -356,6 +290,10 @@ def prognose(
     t_s: float,
     segments: tuple[FloatArray, FloatArray],
     settings: PrognosisSettings,
+    *,
+    log_time_var: float = 0.0,
+    walk_rel_var_per_s: float = 0.0,
+    time_scale: float = 1.0,
 ) -> PrognosisResult:
     """Monte Carlo RUL and deterministic bounds from the estimate ``x`` and covariance ``cov``.
 
@@ -367,6 +305,19 @@ def prognose(
         t_s: prognosis time (seeds the generator).
         segments: one period of the future load from now (:func:`load_segments`).
         settings: Monte Carlo and propagation settings.
+        log_time_var: variance of a relative wear-rate error beyond the covariance (model and
+            load error measured on the stream's own history); each trajectory's time is
+            multiplied by ``exp(s z)``.
+        walk_rel_var_per_s: relative random-walk variance of m per second (the filter's own
+            model of a slowly varying m, seed assumption iii): over a remaining life T the mean
+            of the walk has relative variance ``walk T / 3``, added to ``s^2`` per trajectory.
+        time_scale: factor on every time (Monte Carlo and bounds): the recalibration of the
+            wear rate on the stream's record (``1 / (realized / predicted)``).
+
+    Since the time to failure is inversely proportional to the mean wear rate, a relative rate
+    error ``eps`` scales it by ``1 / (1 + eps)``, taken as ``exp(-eps)`` (lognormal, so the
+    times stay positive); both widenings are drawn after the initial states, so they leave the
+    draws of the states unchanged.
     """
     alpha_fail = alpha0 * (1.0 - settings.failure_dn)
     ell_fail = math.log(alpha_fail)
@@ -385,6 +336,12 @@ def prognose(
         settings.eps_seg,
         settings.eps_jump,
     )
+    if log_time_var > 0.0 or walk_rel_var_per_s > 0.0:
+        z_rate = rng.standard_normal(settings.n_trajectories)
+        finite = np.isfinite(times)
+        var = log_time_var + walk_rel_var_per_s * np.where(finite, times, 0.0) / 3.0
+        times = np.where(finite, times * np.exp(np.sqrt(var) * z_rate), times)
+    times = times * time_scale
     c = settings.bound_c
     s_alpha = math.sqrt(max(float(cov[2, 2]), 0.0))
     s_m = math.sqrt(max(float(cov[3, 3]), 0.0))
@@ -404,6 +361,8 @@ def prognose(
         settings.eps_seg,
         settings.eps_jump,
     )
+    opt = opt * time_scale
+    pes = pes * time_scale
     reached = np.isfinite(times)
     sorted_times = np.sort(np.where(reached, times, np.inf))
     all_reached = bool(reached.all())

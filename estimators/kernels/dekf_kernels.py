@@ -61,7 +61,22 @@ CFG_CURRENT_VAR = 36  # variance of the measured current (A^2), propagated as pr
 CFG_INV_J1 = 37  # 1 / J1
 CFG_INV_J2 = 38  # 1 / J2
 CFG_DT_NOMINAL = 39  # nominal sample period (0: use the actual spacing)
-CFG_LEN = 40
+CFG_INPUT_INTERVAL = 40  # 1.0: interval-mean input with edge-timing variance; 0.0: held input
+CFG_INPUT_TIMING = 41  # channel skew/jitter allowance (s)
+CFG_ADAPT_MEMORY = 42  # memory of the Sage-Husa noise estimate (s); 0: R fixed
+CFG_GATE = 43  # 2: NIS gates for 1 and 2 measured channels (inf: no gating)
+CFG_ALPHA_MAX = 45  # alpha-hat <= alpha0 * this (projection)
+CFG_M_WALK = 46  # relative random walk of m per sqrt(s)
+CFG_CALIB_S = 47  # alpha0 calibration length (s), when alpha0 is NaN
+CFG_ALPHA_PRIOR = 48  # initial alpha while calibrating
+CFG_ALPHA_PRIOR_VAR = 49  # its variance
+CFG_LEN = 50
+#: sigma = median(|y_k - 3 y_k-1 + 3 y_k-2 - y_k-3|) / (0.6745 sqrt(20)) for white noise
+MEDIAN_TO_SIGMA = 1.0 / (0.6744897501960817 * math.sqrt(20.0))
+#: third differences needed before the noise estimate replaces the configured R
+MIN_DIFFS = 8
+#: largest ln-factor of the back-extrapolation of alpha0 over the calibration segment
+CALIB_MAX_LOG = 0.5
 #: A spacing within this fraction of the nominal period is taken as the nominal period.
 DT_SNAP_TOL = 1e-3
 
@@ -98,8 +113,39 @@ ST_OB_SUM_DT = 45
 ST_OB_COUNT = 46
 ST_OB_HEAD = 47
 ST_OB_FILLED = 48
-ST_RING = 49  # bins currents, then bins durations
-ST_BASE_LEN = 49
+# version 2
+ST_R_HAT = 49  # 2: estimated measurement noise variances (NaN: the configured ones)
+ST_N_ADAPT = 51  # noise-estimate updates so far
+ST_DU_PREV = 52  # current change over the previous interval (A)
+ST_ALPHA0 = 53  # alpha0 in use (NaN while it is being estimated)
+ST_CALIB_T_END = 54  # end of the alpha0 calibration segment (s)
+ST_CALIB_INT = 55  # integral of dv^2 dt over the calibration segment so far
+ST_W_N_GATED = 56  # window accumulator: down-weighted updates
+ST_N_GATED = 57  # down-weighted updates since the stream start
+ST_BAD_STREAK = 58  # consecutive inconsistent health windows
+ST_GOOD_STREAK = 59  # consecutive consistent health windows
+ST_VERDICT = 60  # consistency verdict after hysteresis (NaN: none yet, 1 consistent, 0 not)
+ST_FAILED = 61  # 1.0 once Dn-hat has reached the failure threshold (latched)
+ST_HIST_T = 62  # last prognosis: time (NaN: none)
+ST_HIST_ELL = 63  # its ln(alpha-hat)
+ST_HIST_RATE = 64  # its predicted rate of -ln(alpha) (1/s)
+ST_HIST_VAR = 65  # its variance of ln(alpha-hat)
+ST_ERR_N = 66  # log-rate error record: count
+ST_ERR_SUM2 = 67  # sum of squared log-rate errors
+ST_ERR_SUMV = 68  # sum of the squared errors the covariance explains
+ST_RUL_STATUS = 69  # index in STATUSES of the last prognosis status (NaN: none)
+ST_QW = 70  # 2: estimated process noise of w1, w2 per step (covariance matching)
+ST_Y_HIST = 72  # 6: last three valid measurements of w1, then of w2 (NaN: fewer)
+ST_QTL = 78  # 2: running median of |third difference| of w1, w2
+ST_N_QTL = 80  # 2: its sample counts
+ST_A0_BEST = 82  # alpha0 candidate of least variance during the calibration (NaN: none)
+ST_A0_VAR = 83  # variance of ln(alpha0-hat) (0 when alpha0 is configured)
+ST_ERR_SUM = 84  # log-rate error record: sum of the relative errors
+ST_ERR_REAL = 85  # sum of the realized changes of -ln(alpha) between prognoses
+ST_ERR_PRED = 86  # sum of the predicted changes
+ST_RING = 87  # bins currents, then bins durations
+ST_BASE_LEN = 87
+ST_BASE_LEN_V1 = 49
 
 # health-window rows
 WIN_T0 = 0
@@ -115,7 +161,10 @@ WIN_CH = 9  # 2 x CH_LEN
 WIN_DN0 = 19
 WIN_X = 20  # 4
 WIN_SIGMA = 24  # 4
-WIN_LEN = 28
+WIN_N_GATED = 28
+WIN_R = 29  # 2: noise variances in use at the window end
+WIN_ALPHA0 = 31
+WIN_LEN = 32
 
 # Dn level change rows
 EV_T = 0
@@ -126,13 +175,15 @@ EV_DN_LO = 4
 EV_DN_HI = 5
 EV_LEN = 6
 
-# prognosis snapshot rows: time, x (4), P upper triangle (10), filled bins, ring (2 x bins)
+# prognosis snapshot rows: time, x (4), P upper triangle (10), filled bins, alpha0, ring (2 x bins)
 RS_T = 0
 RS_X = 1
 RS_P = 5
 RS_FILLED = 15
-RS_RING = 16
-RS_BASE_LEN = 16
+RS_ALPHA0 = 16
+RS_A0_VAR = 17
+RS_RING = 18
+RS_BASE_LEN = 18
 
 # per-sample output rows
 OUT_W1 = 0
@@ -146,7 +197,9 @@ OUT_DN_HI = 10
 OUT_E = 11  # 2 innovations
 OUT_E_BOUND = 13  # 2: c sqrt(S_jj)
 OUT_NIS = 15
-OUT_LEN = 16
+OUT_R = 16  # 2: measurement noise variances in use
+OUT_GATED = 18  # 1.0 where the update was down-weighted by the gate
+OUT_LEN = 19
 
 # fused multiply-add contraction only (no reassociation, no assumptions on NaN or infinity):
 # the hot loops are chains of products and sums
@@ -443,7 +496,6 @@ def _ekf_kernel(
     qd1 = cfg[CFG_Q + 1]
     qd2 = cfg[CFG_Q + 2]
     qd3 = cfg[CFG_Q + 3]
-    alpha0 = cfg[CFG_ALPHA0]
     bc = cfg[CFG_BOUND_C]
     dn_watch = cfg[CFG_DN_WATCH]
     dn_alert = cfg[CFG_DN_ALERT]
@@ -455,14 +507,54 @@ def _ekf_kernel(
     bin_samples = cfg[CFG_OBS_BIN_SAMPLES]
     project = cfg[CFG_PROJECT] == 1.0
     var_i = cfg[CFG_CURRENT_VAR]
+    interval = cfg[CFG_INPUT_INTERVAL] == 1.0
+    timing = cfg[CFG_INPUT_TIMING]
+    memory = cfg[CFG_ADAPT_MEMORY]
+    gate1 = cfg[CFG_GATE]
+    gate2 = cfg[CFG_GATE + 1]
+    alpha_max = cfg[CFG_ALPHA_MAX]
+    m_walk2 = cfg[CFG_M_WALK] * cfg[CFG_M_WALK]
+    m_ref = 0.1 * abs(cfg[CFG_M0])
+    r1 = cfg[CFG_R1]
+    r2 = cfg[CFG_R2]
 
     init = st[ST_INIT] == 1.0
+    qw0 = st[ST_QW]
+    qw1 = st[ST_QW + 1]
+    h00 = st[ST_Y_HIST]
+    h01 = st[ST_Y_HIST + 1]
+    h02 = st[ST_Y_HIST + 2]
+    h10 = st[ST_Y_HIST + 3]
+    h11 = st[ST_Y_HIST + 4]
+    h12 = st[ST_Y_HIST + 5]
+    qt0 = st[ST_QTL]
+    qt1 = st[ST_QTL + 1]
+    nq0 = st[ST_N_QTL]
+    nq1 = st[ST_N_QTL + 1]
+    rh0 = st[ST_R_HAT]
+    rh1 = st[ST_R_HAT + 1]
+    if not math.isfinite(rh0):
+        rh0 = rv0
+    if not math.isfinite(rh1):
+        rh1 = rv1
+    n_adapt = st[ST_N_ADAPT]
+    du_prev = st[ST_DU_PREV]
+    alpha0 = st[ST_ALPHA0]
+    calib_end = st[ST_CALIB_T_END]
+    calib_int = st[ST_CALIB_INT]
+    w_n_gated = st[ST_W_N_GATED]
+    n_gated = st[ST_N_GATED]
+    a0_best = st[ST_A0_BEST]
+    a0_var = st[ST_A0_VAR]
     t_last = st[ST_T_LAST]
     u_held = st[ST_U_HELD]
     x0 = st[ST_X]
     x1 = st[ST_X + 1]
     x2 = st[ST_X + 2]
     x3 = st[ST_X + 3]
+    if init and not math.isfinite(alpha0) and not math.isfinite(calib_end):
+        # a state upgraded from version 1 (always run with a configured alpha0)
+        alpha0 = cfg[CFG_ALPHA0] if math.isfinite(cfg[CFG_ALPHA0]) else st[ST_X + 2]
     p00 = st[ST_P]
     p01 = st[ST_P + 1]
     p02 = st[ST_P + 2]
@@ -509,20 +601,31 @@ def _ekf_kernel(
         y1 = w2_meas[k]
         have0 = math.isfinite(y0)
         have1 = math.isfinite(y1)
+        predicted = init
         if not init:
             # prior at the first sample: configured speeds, else the first measurement (else 0)
             w0c = cfg[CFG_W0]
             w1c = cfg[CFG_W0 + 1]
             x0 = w0c if math.isfinite(w0c) else (y0 if have0 else 0.0)
             x1 = w1c if math.isfinite(w1c) else (y1 if have1 else 0.0)
-            x2 = alpha0
+            alpha0 = cfg[CFG_ALPHA0]
             x3 = cfg[CFG_M0]
             p00 = cfg[CFG_P0]
             p11 = cfg[CFG_P0 + 1]
-            p22 = cfg[CFG_P0 + 2]
             p33 = cfg[CFG_P0 + 3]
+            if math.isfinite(alpha0):
+                x2 = alpha0
+                p22 = cfg[CFG_P0 + 2]
+                a0_var = 0.0
+            else:
+                # alpha0 unknown: a wide prior, estimated over the calibration segment
+                x2 = cfg[CFG_ALPHA_PRIOR]
+                p22 = cfg[CFG_ALPHA_PRIOR_VAR]
+                calib_end = tk + cfg[CFG_CALIB_S]
+                calib_int = 0.0
             p01 = p02 = p03 = p12 = p13 = p23 = 0.0
             u_held = 0.0
+            du_prev = 0.0
             init = True
             if math.isfinite(every) and not math.isfinite(t_next):
                 t_next = tk + every
@@ -534,10 +637,29 @@ def _ekf_kernel(
             # excursion, does not make alpha grow in the prediction. Without this the filter
             # diverges once alpha nears 0 and m becomes unobservable.
             m_wear = max(x3, 0.0) if project else x3
+            # Input over [t_{k-1}, t_k]. "interval": the mean of the bounding samples, and the
+            # variance of an edge at an unknown instant of the interval (uniform: dI^2 / 12)
+            # plus a timing allowance (skew / jitter between channels) on this interval and the
+            # previous one; "hold": the earlier sample (seed eq. 16).
+            u_step = u_held
+            var_u = var_i
+            if interval:
+                ik = current[k]
+                du = ik - u_held if math.isfinite(ik) else 0.0
+                u_step = u_held + 0.5 * du
+                big = max(du * du, du_prev * du_prev)
+                var_u += du * du * (1.0 / 12.0) + big * (timing / dt) ** 2
+                du_prev = du
             (
                 e00, e01, e02, e10, e11, e12, e20, e21, e22, c0, c1, c2, e44, dx0, dx1, dx2,
                 gb0, gb1, gb2,
-            ) = discretize(cfg, x0, x1, x2, m_wear, u_held, dt)  # fmt: skip
+            ) = discretize(cfg, x0, x1, x2, m_wear, u_step, dt)  # fmt: skip
+            if not math.isfinite(alpha0):
+                dvc = r1 * x0 - r2 * x1
+                calib_int += dvc * dvc * dt
+            # random walk of m relative to its estimate (seed assumption iii)
+            mref = max(x3, m_ref)
+            qm = qd3 + m_walk2 * mref * mref * dt
             x0 += dx0
             x1 += dx1
             x2 += dx2
@@ -555,16 +677,16 @@ def _ekf_kernel(
             w1 = e10 * p03 + e11 * p13 + e12 * p23 + c1 * p33
             w2 = e20 * p03 + e21 * p13 + e22 * p23 + c2 * p33
             # + Q + var(I) gb gb^T: the held current's error over the step
-            n00 = m00 * e00 + m01 * e01 + m02 * e02 + w0 * c0 + qd0 + var_i * gb0 * gb0
-            n01 = m00 * e10 + m01 * e11 + m02 * e12 + w0 * c1 + var_i * gb0 * gb1
-            n02 = m00 * e20 + m01 * e21 + m02 * e22 + w0 * c2 + var_i * gb0 * gb2
-            n11 = m10 * e10 + m11 * e11 + m12 * e12 + w1 * c1 + qd1 + var_i * gb1 * gb1
-            n12 = m10 * e20 + m11 * e21 + m12 * e22 + w1 * c2 + var_i * gb1 * gb2
-            n22 = m20 * e20 + m21 * e21 + m22 * e22 + w2 * c2 + qd2 + var_i * gb2 * gb2
+            n00 = m00 * e00 + m01 * e01 + m02 * e02 + w0 * c0 + qd0 + qw0 + var_u * gb0 * gb0
+            n01 = m00 * e10 + m01 * e11 + m02 * e12 + w0 * c1 + var_u * gb0 * gb1
+            n02 = m00 * e20 + m01 * e21 + m02 * e22 + w0 * c2 + var_u * gb0 * gb2
+            n11 = m10 * e10 + m11 * e11 + m12 * e12 + w1 * c1 + qd1 + qw1 + var_u * gb1 * gb1
+            n12 = m10 * e20 + m11 * e21 + m12 * e22 + w1 * c2 + var_u * gb1 * gb2
+            n22 = m20 * e20 + m21 * e21 + m22 * e22 + w2 * c2 + qd2 + var_u * gb2 * gb2
             p03 = w0 * e44
             p13 = w1 * e44
             p23 = w2 * e44
-            p33 = p33 * e44 * e44 + qd3
+            p33 = p33 * e44 * e44 + qm
             p00, p01, p02, p11, p12, p22 = n00, n01, n02, n11, n12, n22
             # observed-load ring: the current held over this step, binned by steps
             if bins > 0:
@@ -579,13 +701,71 @@ def _ekf_kernel(
                     ob_udt = 0.0
                     ob_dt = 0.0
                     ob_count = 0.0
-        # --- update (Joseph form), with the measured channels only
+        # --- noise estimation (when adaptive).
+        # Sensor noise R from the measurements alone: the running median of the absolute third
+        # difference of each speed (white noise of variance r gives a N(0, 20 r) difference,
+        # the smooth signal almost none; the median ignores the transients that follow current
+        # changes), by multiplicative steps of 1 / (n + 1), then at least 2 dt / memory.
+        # Process noise of the speeds (model, input-timing and discretization error) by
+        # covariance matching of the innovations against their predicted variance:
+        # q_j <- max(0, q_j + d (min(e_j^2, gate S_jj) - S_jj)), d = max(1 / (n + 2), dt / memory).
+        if memory > 0.0:
+            g_min = 2.0 * (tk - t_last) / memory if predicted else 1.0
+            if have0:
+                if math.isfinite(h02):
+                    a3 = abs(y0 - 3.0 * h00 + 3.0 * h01 - h02)
+                    if nq0 == 0.0:
+                        qt0 = max(a3, 1e-300)
+                    else:
+                        g = 1.0 + max(1.0 / (nq0 + 1.0), g_min)
+                        qt0 = qt0 * g if a3 > qt0 else qt0 / g
+                    nq0 += 1.0
+                    if nq0 >= MIN_DIFFS:
+                        rh0 = (qt0 * MEDIAN_TO_SIGMA) ** 2
+                h02 = h01
+                h01 = h00
+                h00 = y0
+            else:
+                h00 = h01 = h02 = np.nan
+            if have1:
+                if math.isfinite(h12):
+                    a3 = abs(y1 - 3.0 * h10 + 3.0 * h11 - h12)
+                    if nq1 == 0.0:
+                        qt1 = max(a3, 1e-300)
+                    else:
+                        g = 1.0 + max(1.0 / (nq1 + 1.0), g_min)
+                        qt1 = qt1 * g if a3 > qt1 else qt1 / g
+                    nq1 += 1.0
+                    if nq1 >= MIN_DIFFS:
+                        rh1 = (qt1 * MEDIAN_TO_SIGMA) ** 2
+                h12 = h11
+                h11 = h10
+                h10 = y1
+            else:
+                h10 = h11 = h12 = np.nan
+            if predicted and nq0 >= MIN_DIFFS and nq1 >= MIN_DIFFS:
+                d = max(1.0 / (n_adapt + 2.0), (tk - t_last) / memory)
+                if have0:
+                    ea = y0 - x0
+                    sa = p00 + rh0
+                    qw0 = max(qw0 + d * (min(ea * ea, gate1 * sa) - sa), 0.0)
+                if have1:
+                    ea = y1 - x1
+                    sa = p11 + rh1
+                    qw1 = max(qw1 + d * (min(ea * ea, gate1 * sa) - sa), 0.0)
+                n_adapt += 1.0
+        rv0 = rh0
+        rv1 = rh1
+        # --- update (Joseph form), with the measured channels only; an update whose NIS
+        # exceeds the gate is down-weighted: S scaled by lam = NIS / gate (K / lam, and the
+        # Joseph form with the matching R_eff = lam S - H P H^T)
         e0 = np.nan
         e1 = np.nan
         s00 = p00 + rv0
         s11 = p11 + rv1
         nis = np.nan
         dof = 0.0
+        gated = 0.0
         if have0 and have1:
             e0 = y0 - x0
             e1 = y1 - x1
@@ -594,6 +774,21 @@ def _ekf_kernel(
             i00 = s11 * rdet
             i01 = -s01 * rdet
             i11 = s00 * rdet
+            nis = e0 * (i00 * e0 + i01 * e1) + e1 * (i01 * e0 + i11 * e1)
+            dof = 2.0
+            r01 = 0.0
+            if nis > gate2:
+                lam = nis / gate2
+                gated = 1.0
+                w_n_gated += 1.0
+                n_gated += 1.0
+                rv0 = lam * rv0 + (lam - 1.0) * p00
+                rv1 = lam * rv1 + (lam - 1.0) * p11
+                r01 = (lam - 1.0) * p01
+                il = 1.0 / lam
+                i00 *= il
+                i01 *= il
+                i11 *= il
             # K = P H^T S^-1, rows 0..3
             k00 = p00 * i00 + p01 * i01
             k01 = p00 * i01 + p01 * i11
@@ -603,8 +798,6 @@ def _ekf_kernel(
             k21 = p02 * i01 + p12 * i11
             k30 = p03 * i00 + p13 * i01
             k31 = p03 * i01 + p13 * i11
-            nis = e0 * (i00 * e0 + i01 * e1) + e1 * (i01 * e0 + i11 * e1)
-            dof = 2.0
             x0 += k00 * e0 + k01 * e1
             x1 += k10 * e0 + k11 * e1
             x2 += k20 * e0 + k21 * e1
@@ -625,16 +818,46 @@ def _ekf_kernel(
             a30 = p03 - k30 * p00 - k31 * p01
             a31 = p13 - k30 * p01 - k31 * p11
             a33 = p33 - k30 * p03 - k31 * p13
-            p00 = a00 - a00 * k00 - a01 * k01 + rv0 * k00 * k00 + rv1 * k01 * k01
-            p01 = a01 - a00 * k10 - a01 * k11 + rv0 * k00 * k10 + rv1 * k01 * k11
-            p02 = a02 - a00 * k20 - a01 * k21 + rv0 * k00 * k20 + rv1 * k01 * k21
-            p03 = a03 - a00 * k30 - a01 * k31 + rv0 * k00 * k30 + rv1 * k01 * k31
-            p11 = a11 - a10 * k10 - a11 * k11 + rv0 * k10 * k10 + rv1 * k11 * k11
-            p12 = a12 - a10 * k20 - a11 * k21 + rv0 * k10 * k20 + rv1 * k11 * k21
-            p13 = a13 - a10 * k30 - a11 * k31 + rv0 * k10 * k30 + rv1 * k11 * k31
-            p22 = a22 - a20 * k20 - a21 * k21 + rv0 * k20 * k20 + rv1 * k21 * k21
-            p23 = a23 - a20 * k30 - a21 * k31 + rv0 * k20 * k30 + rv1 * k21 * k31
-            p33 = a33 - a30 * k30 - a31 * k31 + rv0 * k30 * k30 + rv1 * k31 * k31
+            p00 = (
+                a00 - a00 * k00 - a01 * k01 + rv0 * k00 * k00 + rv1 * k01 * k01
+                + r01 * (k00 * k01 + k01 * k00)
+            )
+            p01 = (
+                a01 - a00 * k10 - a01 * k11 + rv0 * k00 * k10 + rv1 * k01 * k11
+                + r01 * (k00 * k11 + k01 * k10)
+            )
+            p02 = (
+                a02 - a00 * k20 - a01 * k21 + rv0 * k00 * k20 + rv1 * k01 * k21
+                + r01 * (k00 * k21 + k01 * k20)
+            )
+            p03 = (
+                a03 - a00 * k30 - a01 * k31 + rv0 * k00 * k30 + rv1 * k01 * k31
+                + r01 * (k00 * k31 + k01 * k30)
+            )
+            p11 = (
+                a11 - a10 * k10 - a11 * k11 + rv0 * k10 * k10 + rv1 * k11 * k11
+                + r01 * (k10 * k11 + k11 * k10)
+            )
+            p12 = (
+                a12 - a10 * k20 - a11 * k21 + rv0 * k10 * k20 + rv1 * k11 * k21
+                + r01 * (k10 * k21 + k11 * k20)
+            )
+            p13 = (
+                a13 - a10 * k30 - a11 * k31 + rv0 * k10 * k30 + rv1 * k11 * k31
+                + r01 * (k10 * k31 + k11 * k30)
+            )
+            p22 = (
+                a22 - a20 * k20 - a21 * k21 + rv0 * k20 * k20 + rv1 * k21 * k21
+                + r01 * (k20 * k21 + k21 * k20)
+            )
+            p23 = (
+                a23 - a20 * k30 - a21 * k31 + rv0 * k20 * k30 + rv1 * k21 * k31
+                + r01 * (k20 * k31 + k21 * k30)
+            )
+            p33 = (
+                a33 - a30 * k30 - a31 * k31 + rv0 * k30 * k30 + rv1 * k31 * k31
+                + r01 * (k30 * k31 + k31 * k30)
+            )
         elif have0 or have1:
             # scalar update with channel j: K = P[:, j] / S, P = A - A[:, j] K^T + r K K^T
             if have0:
@@ -655,12 +878,20 @@ def _ekf_kernel(
                 h1 = p11
                 h2 = p12
                 h3 = p13
+            nis = e * e / sj
+            dof = 1.0
+            hj = h0 if have0 else h1
+            if nis > gate1:
+                lam = nis / gate1
+                gated = 1.0
+                w_n_gated += 1.0
+                n_gated += 1.0
+                rj = lam * rj + (lam - 1.0) * hj
+                sj = lam * sj
             kk0 = h0 / sj
             kk1 = h1 / sj
             kk2 = h2 / sj
             kk3 = h3 / sj
-            nis = e * e / sj
-            dof = 1.0
             x0 += kk0 * e
             x1 += kk1 * e
             x2 += kk2 * e
@@ -677,7 +908,6 @@ def _ekf_kernel(
             a23 = p23 - kk2 * h3
             a33 = p33 - kk3 * h3
             # A[:, j] = h - K h_j
-            hj = h0 if have0 else h1
             b0 = h0 - kk0 * hj
             b1 = h1 - kk1 * hj
             b2 = h2 - kk2 * hj
@@ -692,9 +922,25 @@ def _ekf_kernel(
             p22 = a22 - b2 * kk2 + rj * kk2 * kk2
             p23 = a23 - b2 * kk3 + rj * kk2 * kk3
             p33 = a33 - b3 * kk3 + rj * kk3 * kk3
-        # alpha is non-negative (seed section 3.2)
+        # physical projection of the estimate (seed section 3.2: alpha >= 0, m >= 0, and alpha
+        # only wears from alpha0): the mean is moved onto the bounds, P is kept
         if project:
+            x3 = max(x3, 0.0)
+            if math.isfinite(alpha0):
+                x2 = min(x2, alpha0 * alpha_max)
             x2 = max(x2, 0.0)
+        # alpha0 calibration: each sample gives a candidate alpha-hat carried back over the
+        # wear so far, ln alpha0 = ln alpha(t) + m int_0^t dv^2 dt (eq. 7), of variance
+        # P_aa / alpha^2 + I^2 P_mm + 2 I P_am / alpha; the candidate of least variance is
+        # kept and fixed at the end of the segment (the log factor capped at CALIB_MAX_LOG)
+        if not math.isfinite(alpha0) and x2 > 0.0:
+            lf = min(max(x3, 0.0) * calib_int, CALIB_MAX_LOG)
+            v_a0 = p22 / (x2 * x2) + calib_int * calib_int * p33 + 2.0 * calib_int * p23 / x2
+            if not math.isfinite(a0_var) or v_a0 < a0_var:
+                a0_var = v_a0
+                a0_best = x2 * math.exp(lf)
+            if tk >= calib_end:
+                alpha0 = a0_best
         # --- per-sample outputs
         sg0 = math.sqrt(max(p00, 0.0))
         sg1 = math.sqrt(max(p11, 0.0))
@@ -720,6 +966,9 @@ def _ekf_kernel(
         inv_sd1 = 1.0 / sd1
         out[OUT_E_BOUND, k] = bc * sd0
         out[OUT_E_BOUND + 1, k] = bc * sd1
+        out[OUT_R, k] = rh0
+        out[OUT_R + 1, k] = rh1
+        out[OUT_GATED, k] = gated
         out[OUT_NIS, k] = nis
         # --- health-window accumulators
         if w_count == 0.0:
@@ -799,6 +1048,8 @@ def _ekf_kernel(
             row[RS_P + 8] = p23
             row[RS_P + 9] = p33
             row[RS_FILLED] = ob_filled
+            row[RS_ALPHA0] = alpha0
+            row[RS_A0_VAR] = a0_var
             for b in range(bins):
                 # oldest bin first
                 src = (ob_head + b) % bins
@@ -838,9 +1089,14 @@ def _ekf_kernel(
             row[WIN_SIGMA + 1] = sg1
             row[WIN_SIGMA + 2] = sg2
             row[WIN_SIGMA + 3] = sg3
+            row[WIN_N_GATED] = w_n_gated
+            row[WIN_R] = rh0
+            row[WIN_R + 1] = rh1
+            row[WIN_ALPHA0] = alpha0
             n_win += 1
             w_count = 0.0
             w_n_upd = w_sum_nis = w_sum_dof = w_n_nis_out = w_n_e_out = w_n_e = 0.0
+            w_n_gated = 0.0
             c0_n = c0_sum = c0_sum2 = c0_lag = c0_nlag = 0.0
             c1_n = c1_sum = c1_sum2 = c1_lag = c1_nlag = 0.0
 
@@ -890,6 +1146,29 @@ def _ekf_kernel(
     st[ST_OB_COUNT] = ob_count
     st[ST_OB_HEAD] = ob_head
     st[ST_OB_FILLED] = ob_filled
+    st[ST_R_HAT] = rh0
+    st[ST_R_HAT + 1] = rh1
+    st[ST_N_ADAPT] = n_adapt
+    st[ST_DU_PREV] = du_prev
+    st[ST_ALPHA0] = alpha0
+    st[ST_CALIB_T_END] = calib_end
+    st[ST_CALIB_INT] = calib_int
+    st[ST_W_N_GATED] = w_n_gated
+    st[ST_N_GATED] = n_gated
+    st[ST_QW] = qw0
+    st[ST_QW + 1] = qw1
+    st[ST_A0_BEST] = a0_best
+    st[ST_A0_VAR] = a0_var
+    st[ST_Y_HIST] = h00
+    st[ST_Y_HIST + 1] = h01
+    st[ST_Y_HIST + 2] = h02
+    st[ST_Y_HIST + 3] = h10
+    st[ST_Y_HIST + 4] = h11
+    st[ST_Y_HIST + 5] = h12
+    st[ST_QTL] = qt0
+    st[ST_QTL + 1] = qt1
+    st[ST_N_QTL] = nq0
+    st[ST_N_QTL + 1] = nq1
     return windows[:n_win], events[:n_ev], snaps[:n_snap], 0
 
 

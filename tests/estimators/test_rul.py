@@ -90,7 +90,7 @@ CASES = [
         1000.0,
         300.0,
     ),
-    (20.0, rul.ConstantLoad(20.0), 50.0, 0.8, 200.0, 2000.0),
+    (20.0, rul.ConstantLoad(current_a=20.0), 50.0, 0.8, 200.0, 2000.0),
 ]
 
 
@@ -238,7 +238,7 @@ def test_load_segments_are_phased_by_stream_time() -> None:
     d, c = rul.load_segments(load, 2.5)  # exactly on a rising edge
     np.testing.assert_allclose(d, [1.0, 1.0])
     np.testing.assert_allclose(c, [20.0, 0.0])
-    d, c = rul.load_segments(rul.ConstantLoad(5.0), 123.0)
+    d, c = rul.load_segments(rul.ConstantLoad(current_a=5.0), 123.0)
     assert c.tolist() == [5.0] and d.tolist() == [rul.CONSTANT_SEGMENT_S]
     profile = rul.ProfileLoad(durations_s=(1.0, 2.0, 3.0), current_a=(1.0, 2.0, 3.0), t0_s=0.0)
     d, c = rul.load_segments(profile, 6.0 + 2.0)  # 1 s into the second segment
@@ -257,7 +257,7 @@ def test_load_segments_are_phased_by_stream_time() -> None:
         ({"kind": "sine"}, "kind"),
         ({"kind": "square_wave", "period_s": 0.0}, "period_s"),
         ({"kind": "square_wave", "duty": 1.0}, "duty"),
-        ({"kind": "square_wave", "high": 1.0}, "unknown"),
+        ({"kind": "square_wave", "high": 1.0}, r"rul_load.high: Extra inputs"),
         ({"kind": "constant", "current_a": float("nan")}, "current_a"),
         ({"kind": "profile", "durations_s": [1.0], "current_a": [1.0, 2.0]}, "equal length"),
         ({"kind": "profile", "durations_s": [1.0, -1.0], "current_a": [1.0, 2.0]}, "durations_s"),
@@ -274,7 +274,7 @@ def test_bad_load_assumptions(raw: object, match: str) -> None:
 def test_load_round_trip() -> None:
     for load in (
         rul.SquareWaveLoad(high_a=3.0),
-        rul.ConstantLoad(7.0),
+        rul.ConstantLoad(current_a=7.0),
         rul.ProfileLoad(durations_s=(1.0, 2.0), current_a=(0.0, 4.0), t0_s=1.0),
         rul.ObservedLoad(bins=10),
     ):
