@@ -755,6 +755,70 @@ def simulator_beyond_section() -> list[str]:
     return lines
 
 
+def binding_section() -> list[str]:
+    """The service demo's degradation: viscous friction grows 60-fold over 90 s of a 120 s
+    stream (100 Hz, 30 s work cycles); re-identification must not hide it."""
+    seeds = range(2) if QUICK else range(8)
+    on_cfg = fakf.parse_config({})
+    off_cfg = fakf.parse_config({"reidentification": {"enabled": False}})
+    lines = [
+        "### Simulator: a binding ball screw (re-identification must not hide it)",
+        "",
+        "Four 30 s work cycles at 100 Hz, `simulate_ema(..., damping_nm_s_rad=B)` with B growing "
+        "from nominal to 60 x nominal between 30 s and 120 s (the service demo's degradation), "
+        "load +-40 lbs by seed; default configuration with and without re-identification. "
+        "Last window: status and `innovation_rms_ratio`.",
+        "",
+        "| seed | re-identifications | last status (on) | ratio (on) | last status (off) "
+        "| ratio (off) | prior/persistence of the last window (on / off) |",
+        "|---:|---:|---|---:|---|---:|---|",
+    ]
+    hidden = 0
+    ok_anyway = 0
+    for seed in seeds:
+        ts, cs, vs = [], [], []
+        for cycle in range(4):
+            severity = min(1.0, max(0.0, (30.0 * cycle - 30.0) / 90.0))
+            sim = simulate_ema(
+                30.0,
+                100.0,
+                40.0 if seed % 2 == 0 else -40.0,
+                seed * 1_000_003 + cycle,
+                damping_nm_s_rad=2.0e-5 * (1.0 + 59.0 * severity),
+            )
+            ts.append(30.0 * cycle + sim.t_s)
+            cs.append(sim.current_a)
+            vs.append(sim.voltage_measured_v)
+        t, cur, volt = np.concatenate(ts), np.concatenate(cs), np.concatenate(vs)
+        on = run_stream(on_cfg, t, cur, volt, end_of_run=False)
+        off = run_stream(off_cfg, t, cur, volt, end_of_run=False)
+        h_on, h_off = on.health[-1], off.health[-1]
+        n_re = sum(e.kind == "reidentified" for e in on.events)
+        if h_off.status != "ok" and h_on.status == "ok":
+            hidden += 1
+        if h_off.status == "ok" and h_on.status == "ok":
+            ok_anyway += 1
+        lines.append(
+            f"| {seed} | {n_re} | {h_on.status} "
+            f"| {fmt(h_on.indicators['innovation_rms_ratio'])} | {h_off.status} "
+            f"| {fmt(h_off.indicators['innovation_rms_ratio'])} "
+            f"| {fmt(_ratio(h_on))} / {fmt(_ratio(h_off))} |"
+        )
+    lines += [
+        "",
+        f"Runs where re-identification turned a non-ok status into ok: {hidden} of "
+        f"{len(seeds)}. The consistency indicators come from the reference filter (the first "
+        "model) once a re-identification has happened, so the ratio is the same with and "
+        "without it; the status differs only where the prior lost to persistence without "
+        "re-identification (`unknown`, which outranks `watch`). What this does not change: "
+        f"the seed filter's own sensitivity; in {ok_anyway} of {len(seeds)} runs the binding "
+        "leaves the innovation ratio at or below the 1.5 watch level and the last window "
+        "`ok`, with re-identification or without.",
+        "",
+    ]
+    return lines
+
+
 def main() -> int:
     config = fakf.parse_config({})
     fakf.warm_up()
@@ -766,6 +830,7 @@ def main() -> int:
         lines += [f"FLEA data not found at `{flea_dir()}`: FLEA tables skipped.", ""]
     lines += simulator_section()
     lines += simulator_beyond_section()
+    lines += binding_section()
     lines.append(END)
     section = "\n".join(lines)
     text = DOC.read_text(encoding="utf-8") if DOC.exists() else "# Validation\n\n"
