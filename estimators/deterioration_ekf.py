@@ -235,6 +235,14 @@ def _kernel_config(config: DekfConfig) -> FloatArray:
     return cfg
 
 
+
+
+
+
+
+
+
+
 def _fraction(name: str, value: Any) -> float:
     v = _finite(name, value)
     if not 0.0 < v < 1.0:
@@ -318,9 +326,7 @@ def parse_config(raw: Mapping[str, Any]) -> DekfConfig:
         nonnegative=_boolean("nonnegative", get("nonnegative", d.nonnegative)),
         bound_sigma=_positive("bound_sigma", get("bound_sigma", d.bound_sigma)),
         expm_tol=_fraction("expm_tol", get("expm_tol", d.expm_tol)),
-        sample_period_s=_optional_positive(
-            "sample_period_s", get("sample_period_s", d.sample_period_s)
-        ),
+        sample_period_s=_optional_positive("sample_period_s", get("sample_period_s", d.sample_period_s)),
         health_window_samples=_integer(
             "health_window_samples",
             get("health_window_samples", d.health_window_samples),

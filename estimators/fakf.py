@@ -152,6 +152,8 @@ class FakfConfig:
         object.__setattr__(self, "kernel_vector", _kernel_config(self))
 
 
+
+
 def _positive_float(name: str, value: Any) -> float:
     if not _is_number(value) or not math.isfinite(float(value)) or float(value) <= 0.0:
         raise ConfigError(f"{name}: expected a positive finite number, got {value!r}")
@@ -419,6 +421,8 @@ class ArxFit(NamedTuple):
     current_std: float | None
     rows: int
     reason: str | None
+
+
 
 
 def _fit_from_vector(fit: FloatArray) -> ArxFit:

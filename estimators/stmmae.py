@@ -161,6 +161,8 @@ class StmmaeConfig:
         return (NOMINAL, *self.model.surfaces)
 
 
+
+
 def _number(name: str, value: Any, lo: float, hi: float, *, lo_open: bool = False) -> float:
     if not _is_number(value) or not math.isfinite(float(value)):
         raise ConfigError(f"{name}: expected a finite number, got {value!r}")
@@ -616,6 +618,8 @@ def sample_output_names(config: StmmaeConfig) -> tuple[str, ...]:
     )
 
 
+
+
 def _deg(value: float) -> float | None:
     v = _finite(value)
     return None if v is None else round(math.degrees(v), 6)
@@ -744,6 +748,8 @@ def _health(row: FloatArray, config: StmmaeConfig) -> HealthWindow:
         status=status,
         reasons=tuple(reasons),
     )
+
+
 
 
 def step(config: StmmaeConfig, state: StmmaeState, batch: Batch) -> tuple[StmmaeState, StepOutputs]:
