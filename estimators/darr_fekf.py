@@ -672,12 +672,12 @@ class SensorChecksModel(EstimatorConfigModel):
         0.2, description="time constant of the running noise variance, s"
     )
     noise_persist_s: _Positive = Field(
-        0.3,
+        1.0,
         description="time the running noise variance must stay over the level before a sensor "
         "is flagged noisy, s (a plant transient raises it for a while)",
     )
     noise_ratio: _Ratio = Field(
-        3.0,
+        2.5,
         description="running over calibrated noise variance above which a sensor is noisy "
         "(also: calibration noise over reference noise above which calibration is refused)",
     )

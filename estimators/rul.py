@@ -282,6 +282,8 @@ def quantile_or_none(sorted_times: FloatArray, q: float) -> float | None:
     return float(sorted_times[lo] + (h - lo) * (sorted_times[hi] - sorted_times[lo]))
 
 
+
+
 def prognose(
     plant: FloatArray,
     alpha0: float,

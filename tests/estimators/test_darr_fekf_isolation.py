@@ -198,7 +198,7 @@ def test_stuck_sensor_is_flagged_and_stops_the_filters() -> None:
 
 
 def test_noisy_sensor_is_flagged() -> None:
-    _, _, _, _, detail = _sensor_run(SensorFault("v_p", "noise", 1.4, 4.0), duration=2.2)
+    _, _, _, _, detail = _sensor_run(SensorFault("v_p", "noise", 1.4, 4.0), duration=3.2)
     assert detail["sensor_flags"] == {"v_p": "noisy"}
     assert detail["isolation"]["explanation"] == "sensor"
 
@@ -235,7 +235,8 @@ def test_config_model_schema_and_round_trip() -> None:
     assert config.thresholds.rule == "fixed"
     d = m.config_to_dict(config)
     assert m.parse_config(json.loads(json.dumps(d))) == config
-    assert d["sensors"]["stuck_s"] == 0.1 and d["isolation"]["min_fit_s"] == 0.3
+    assert d["sensors"]["stuck_s"] == 0.1 and d["sensors"]["noise_persist_s"] == 1.0
+    assert d["isolation"]["min_fit_s"] == 0.3
 
 
 def test_version_1_state_loads_and_steps() -> None:
@@ -260,3 +261,18 @@ def test_version_1_state_loads_and_steps() -> None:
     with pytest.raises(StateVersionError):
         m.load_state(bad)
     assert state2.value("fit_samples") > 0  # the fit runs on the upgraded state
+
+
+def test_plant_transient_is_not_taken_for_sensor_noise() -> None:
+    # an f_r step excites the screw's stiff mode: F_C's third differences rise to 20x the
+    # noise for about 0.4 s; the noise check's persistence (1 s) keeps that from flagging the
+    # sensor, a 0.3 s persistence does not
+    t, ch, _ = simulate_sha_ema(4.2, faults=[FaultSchedule("f_r", 2.2, "step", 1.5e4)], seed=36)
+    _, _, _, _, detail = run(FAST, t, ch)
+    assert detail["sensor_flags"] == {}
+    assert detail["isolation"]["explanation"] == "parameter"
+    assert detail["isolation"]["hypotheses"][0]["set"] == ["f_r"]
+    hasty = {**FAST, "sensors": {"noise_persist_s": 0.3}}
+    _, _, _, _, hasty_detail = run(hasty, t, ch)
+    assert hasty_detail["sensor_flags"] == {"f_c": "noisy"}
+    assert hasty_detail["isolation"]["explanation"] == "sensor"
