@@ -4,16 +4,23 @@ A bank of Kalman-type filters runs on a discrete linear(ized) aircraft model giv
 configuration (seed paper: Ma, Ni, Xie, Dong, "Fast fault diagnosis of improved strong tracking
 aircraft actuator", Systems Engineering and Electronics 37(11), 2015): one no-fault filter and one
 filter per monitored surface, which augments the state with that surface's actual deflection
-(a random walk) and drops the surface's command from its input. Each filter is a strong tracking
-filter with multiple fading factors; the seed's improvement applies the fading matrix on both
-sides of the propagated covariance, ``P- = L Phi P Phi^T L + Q``, keeping P symmetric. The
-original one-sided form (``strong_tracking``) and a plain Kalman bank (``emmae``) are selectable.
-Hypothesis probabilities follow the Bayes recursion with either the seed's Euclidean-norm
-likelihood or the full Gaussian density, floored at ``probability_floor``; a hypothesis held
-above ``detect_probability`` for ``hold_s`` is a fault, cleared when below
-``clear_probability`` for ``clear_hold_s``.
+(a random walk) and drops the surface's command from its input; with ``pair_hypotheses`` (not in
+the seed) also one filter per pair of surfaces, so that two overlapping faults have a hypothesis
+that explains them. Each filter is a strong tracking filter with multiple fading factors; the
+seed's improvement applies the fading matrix on both sides of the propagated covariance,
+``P- = L Phi P Phi^T L + Q``, keeping P symmetric. The original one-sided form
+(``strong_tracking``) and a plain Kalman bank (``emmae``) are selectable. Hypothesis
+probabilities follow the Bayes recursion with either the seed's Euclidean-norm likelihood or the
+full Gaussian density, floored per hypothesis.
 
-Equations, choices where the seed is silent and the configuration reference:
+Decisions are per surface, on its marginal fault probability: a detection needs the probability
+above ``detect_probability``, the deflection estimate off its command and the log-likelihood
+ratio against the no-fault filter summed over the run above ``min_log_likelihood_ratio``, held
+``hold_s``; the fault kind (stuck or oscillating) is judged from the autocorrelation of the
+deflection history over ``fault_kind_window_s``; clearance needs the surface back at its
+command with a low probability for ``clear_hold_s``.
+
+Equations, choices where the seed is silent, the configuration reference and what was measured:
 ``docs/methods-stmmae.md``.
 """
 
