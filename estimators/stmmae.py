@@ -351,7 +351,7 @@ class StmmaeConfig(EstimatorConfigModel):
             )
         return self
 
-    @property
+    @cached_property
     def hypotheses(self) -> tuple[str, ...]:
         """``nominal``, the surfaces, then (with ``pair_hypotheses``) each pair ``a+b``."""
         names = self.model.surfaces
