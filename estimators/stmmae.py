@@ -1020,6 +1020,9 @@ def _health(row: FloatArray, config: StmmaeConfig) -> HealthWindow:
 def step(config: StmmaeConfig, state: StmmaeState, batch: Batch) -> tuple[StmmaeState, StepOutputs]:
     """Advance the bank over a whole batch (the per-sample loop runs compiled).
 
+    A batch with ``end_of_run`` closes the partial health window after its last sample (every
+    sample of a closed run is in some window); the filters and decisions carry on.
+
     Per-sample outputs: ``prob_<hypothesis>``, ``state_<state>`` (probability-blended, absolute),
     ``deflection_<surface>`` (rad, from the surface's filter), ``nis_nominal`` (NIS of the
     no-fault filter per measurement used; NaN when no measurement).
@@ -1052,6 +1055,13 @@ def step(config: StmmaeConfig, state: StmmaeState, batch: Batch) -> tuple[Stmmae
     )
     if status != 0:
         raise OutOfOrderError("batch times are not strictly increasing")
+    lay = layout(config)
+    wacc = vec[lay.window : lay.window + kern.W_LEN]
+    if batch.end_of_run and wacc[kern.W_COUNT] > 0.0:
+        # the run is closed: its partial health window is scored now
+        row = np.empty((1, kern.WIN_LEN))
+        kern._close_window(wacc, float(t[n - 1]), row[0])
+        windows = np.concatenate([windows, row])
     vec.setflags(write=False)
     new_state = StmmaeState(version=STATE_VERSION, t_last_s=float(t[n - 1]), vector=vec)
     outputs = StepOutputs(
