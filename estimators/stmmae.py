@@ -4,16 +4,23 @@ A bank of Kalman-type filters runs on a discrete linear(ized) aircraft model giv
 configuration (seed paper: Ma, Ni, Xie, Dong, "Fast fault diagnosis of improved strong tracking
 aircraft actuator", Systems Engineering and Electronics 37(11), 2015): one no-fault filter and one
 filter per monitored surface, which augments the state with that surface's actual deflection
-(a random walk) and drops the surface's command from its input. Each filter is a strong tracking
-filter with multiple fading factors; the seed's improvement applies the fading matrix on both
-sides of the propagated covariance, ``P- = L Phi P Phi^T L + Q``, keeping P symmetric. The
-original one-sided form (``strong_tracking``) and a plain Kalman bank (``emmae``) are selectable.
-Hypothesis probabilities follow the Bayes recursion with either the seed's Euclidean-norm
-likelihood or the full Gaussian density, floored at ``probability_floor``; a hypothesis held
-above ``detect_probability`` for ``hold_s`` is a fault, cleared when below
-``clear_probability`` for ``clear_hold_s``.
+(a random walk) and drops the surface's command from its input; with ``pair_hypotheses`` (not in
+the seed) also one filter per pair of surfaces, so that two overlapping faults have a hypothesis
+that explains them. Each filter is a strong tracking filter with multiple fading factors; the
+seed's improvement applies the fading matrix on both sides of the propagated covariance,
+``P- = L Phi P Phi^T L + Q``, keeping P symmetric. The original one-sided form
+(``strong_tracking``) and a plain Kalman bank (``emmae``) are selectable. Hypothesis
+probabilities follow the Bayes recursion with either the seed's Euclidean-norm likelihood or the
+full Gaussian density, floored per hypothesis.
 
-Equations, choices where the seed is silent and the configuration reference:
+Decisions are per surface, on its marginal fault probability: a detection needs the probability
+above ``detect_probability``, the deflection estimate off its command and the log-likelihood
+ratio against the no-fault filter summed over the run above ``min_log_likelihood_ratio``, held
+``hold_s``; the fault kind (stuck or oscillating) is judged from the autocorrelation of the
+deflection history over ``fault_kind_window_s``; clearance needs the surface back at its
+command with a low probability for ``clear_hold_s``.
+
+Equations, choices where the seed is silent, the configuration reference and what was measured:
 ``docs/methods-stmmae.md``.
 """
 
@@ -344,7 +351,7 @@ class StmmaeConfig(EstimatorConfigModel):
             )
         return self
 
-    @property
+    @cached_property
     def hypotheses(self) -> tuple[str, ...]:
         """``nominal``, the surfaces, then (with ``pair_hypotheses``) each pair ``a+b``."""
         names = self.model.surfaces
@@ -1013,6 +1020,9 @@ def _health(row: FloatArray, config: StmmaeConfig) -> HealthWindow:
 def step(config: StmmaeConfig, state: StmmaeState, batch: Batch) -> tuple[StmmaeState, StepOutputs]:
     """Advance the bank over a whole batch (the per-sample loop runs compiled).
 
+    A batch with ``end_of_run`` closes the partial health window after its last sample (every
+    sample of a closed run is in some window); the filters and decisions carry on.
+
     Per-sample outputs: ``prob_<hypothesis>``, ``state_<state>`` (probability-blended, absolute),
     ``deflection_<surface>`` (rad, from the surface's filter), ``nis_nominal`` (NIS of the
     no-fault filter per measurement used; NaN when no measurement).
@@ -1045,6 +1055,13 @@ def step(config: StmmaeConfig, state: StmmaeState, batch: Batch) -> tuple[Stmmae
     )
     if status != 0:
         raise OutOfOrderError("batch times are not strictly increasing")
+    lay = layout(config)
+    wacc = vec[lay.window : lay.window + kern.W_LEN]
+    if batch.end_of_run and wacc[kern.W_COUNT] > 0.0:
+        # the run is closed: its partial health window is scored now
+        row = np.empty((1, kern.WIN_LEN))
+        kern._close_window(wacc, float(t[n - 1]), row[0])
+        windows = np.concatenate([windows, row])
     vec.setflags(write=False)
     new_state = StmmaeState(version=STATE_VERSION, t_last_s=float(t[n - 1]), vector=vec)
     outputs = StepOutputs(

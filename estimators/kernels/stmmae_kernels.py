@@ -4,15 +4,18 @@
 packs the state into one flat float64 vector and calls :func:`bank_batch` once per batch; the
 loop over samples and filters runs here, compiled by numba.
 
-Bank layout: hypothesis 0 is the no-fault filter, hypothesis ``h >= 1`` the fault of surface
-``h - 1``. Every filter has ``na = n + 1`` states (the model's ``n`` plus the deflection of its
-surface; the no-fault filter's extra state is identically zero and never touched by the data).
+Bank layout: hypothesis 0 is the no-fault filter, then one hypothesis per monitored surface and
+(optionally) one per pair of surfaces. Every filter has ``na = n + slots`` states (the model's
+``n`` plus one deflection slot per surface it declares faulty; ``BankArrays.slot_surface`` maps
+slots to surfaces; unused slots stay identically zero). Decisions are taken per surface on its
+marginal fault probability (the sum over the hypotheses that hold it).
 
 State vector (indices from :func:`state_layout`): a header (samples seen, covariance failures,
 time of the previous sample), per filter ``x`` (na), ``P`` (na x na, row-major, full: the
 one-sided strong-tracking form makes it non-symmetric), ``V`` (p x p innovation covariance
-estimate) and its "started" flag; the hypothesis probabilities; the last valid inputs; per fault
-hypothesis the decision fields (``D_*``); the health-window accumulators (``W_*``).
+estimate) and its "started" flag; the hypothesis probabilities; the last valid inputs; per
+surface the decision fields (``D_*``) and the 0.05 s block history of its deflection estimate
+for the fault-kind test; the health-window accumulators (``W_*``).
 """
 
 from __future__ import annotations

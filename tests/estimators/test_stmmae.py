@@ -450,6 +450,9 @@ def test_covariance_stays_symmetric_positive_definite(variant) -> None:
     config = stmmae.parse_config(
         {
             "variant": variant,
+            # the default bank (pair filters) for the seed's form; the seed's bank for the
+            # Kalman form (keeps the test short)
+            "pair_hypotheses": variant == "improved",
             "health_window_samples": 50_000,
             "fading_weights": [1.0, 1.0, 2.0, 3.0, 1.0, 2.0, 1.0, 1.5],
         }
@@ -786,3 +789,26 @@ def test_second_fault_while_one_is_active_is_isolated_by_pair_hypotheses() -> No
     _, _, _, events1, _ = run(single, t, ch)
     det1 = [e.detail["component"] for e in events1 if e.kind == "fault_detected"]
     assert det1 == ["rudder"]
+
+
+def test_end_of_run_closes_the_partial_health_window(flight) -> None:
+    """Every sample of a closed run is in a health window, split or not; without the marker the
+    partial window stays open in the state."""
+    t, ch, _ = flight
+    config = stmmae.parse_config({"health_window_samples": 700})
+    n = 2000  # 2 full windows and a partial one of 600 samples
+    whole = Batch(t_s=t[:n], channels={c: v[:n] for c, v in ch.items()}, end_of_run=True)
+    _, out = stmmae.step(config, stmmae.initial_state(config), whole)
+    assert [h.n_samples for h in out.health] == [700, 700, 600]
+    assert out.health[-1].t_end_s == t[n - 1]
+    state = stmmae.initial_state(config)
+    health = []
+    for lo, hi in ((0, 650), (650, 1500), (1500, n)):
+        part = Batch(
+            t_s=t[lo:hi], channels={c: v[lo:hi] for c, v in ch.items()}, end_of_run=hi == n
+        )
+        state, o = stmmae.step(config, state, part)
+        health += list(o.health)
+    assert health == list(out.health)
+    _, open_run = stmmae.step(config, stmmae.initial_state(config), Batch(t[:n], whole.channels))
+    assert [h.n_samples for h in open_run.health] == [700, 700]
