@@ -852,14 +852,20 @@ def _predicted_rate(
     return float(-change / seg_d.sum())
 
 
-def _record_rate_error(vec: FloatArray, t_s: float, ell: float, var_ell: float) -> None:
-    """Compare the wear (``-d ln alpha``) realized since the previous prognosis with what that
-    prognosis predicted, and add the relative error, the part of its square the filter's
-    variances explain, and both changes to the stream's record."""
+def _record_rate_error(
+    vec: FloatArray, t_s: float, ell: float, var_ell: float, rate_now: float
+) -> None:
+    """Compare the wear (``-d ln alpha``) realized since the previous prognosis with the
+    predicted one (trapezoid of the rates predicted then and now under the assumed load, so
+    that the drift of the rate as alpha wears is not counted as an error), and add the
+    relative error, the part of its square the filter's variances explain, and both changes to
+    the stream's record."""
     t0 = vec[kern.ST_HIST_T]
     rate = vec[kern.ST_HIST_RATE]
     if not (math.isfinite(t0) and math.isfinite(rate) and rate > 0.0 and t_s > t0):
         return
+    if math.isfinite(rate_now) and rate_now > 0.0:
+        rate = 0.5 * (rate + rate_now)
     predicted = rate * (t_s - t0)
     realized = vec[kern.ST_HIST_ELL] - ell
     if not (math.isfinite(realized) and math.isfinite(var_ell)):
@@ -943,8 +949,12 @@ def prognosis_at(config: DekfConfig, row: FloatArray, vec: FloatArray) -> RulEst
         vec[kern.ST_FAILED] = 1.0
     ell = math.log(x[2]) if x[2] > 0.0 else math.nan
     var_ell = float(cov[2, 2]) / (x[2] * x[2]) if x[2] > 0.0 else math.nan
+    # the record compares only predictions made once m-hat has converged (the wear rate of a
+    # converging filter says nothing about the model's error)
+    converged = x[3] > 0.0 and math.sqrt(max(cov[3, 3], 0.0)) <= config.rul_converged_m_rel_std * x[3]
+    rate_now = _predicted_rate(config, segments, x[2], x[3]) if converged else math.nan
     if config.rul_model_error:
-        _record_rate_error(vec, t_s, ell, var_ell)
+        _record_rate_error(vec, t_s, ell, var_ell, rate_now)
     extra_var = rate_error_var(vec) if config.rul_model_error else 0.0
     ratio = rate_ratio(vec) if config.rul_model_error else 1.0
     # an estimated alpha0 moves the failure level alpha0 (1 - Dn_f): a relative error eps of
@@ -971,12 +981,7 @@ def prognosis_at(config: DekfConfig, row: FloatArray, vec: FloatArray) -> RulEst
     vec[kern.ST_HIST_T] = t_s
     vec[kern.ST_HIST_ELL] = ell
     vec[kern.ST_HIST_VAR] = var_ell
-    # the record compares only predictions made once m-hat has converged (the wear rate of a
-    # converging filter says nothing about the model's error)
-    converged = x[3] > 0.0 and math.sqrt(max(cov[3, 3], 0.0)) <= config.rul_converged_m_rel_std * x[3]
-    vec[kern.ST_HIST_RATE] = (
-        _predicted_rate(config, segments, x[2], x[3]) if converged else math.nan
-    )
+    vec[kern.ST_HIST_RATE] = rate_now
     vec[kern.ST_RUL_STATUS] = STATUSES.index(status)
     assumption: dict[str, Any] = {
         "load": rulmod.load_to_dict(config.rul_load),

@@ -279,7 +279,7 @@ def drives_section(n: int, base_seed: int = BASE_SEED, log: Callable[[str], None
         "Dn levels at 0.6 and 0.8 of it, RUL levels at 30 % and 10 % of the life, a prognosis "
         f"every 1/{PROGNOSES_PER_LIFE} of the life with {TRAJECTORIES} trajectories, and the "
         "load law (square: its own wave; mission: the recorded profile; telegraph: the "
-        "observed load, 20 s of recent current, since no periodic law exists). A: the true "
+        "observed load, 30 s of recent current, since no periodic law exists). A: the true "
         "alpha0 given; B: alpha0 estimated over the first 20 s (the default).",
         "",
         "Error and coverage count the prognoses made once the true Dn passed 20 % of the "
