@@ -20,16 +20,26 @@ Choices where the seed is silent (docs/methods-deterioration-ekf.md has the reas
   squaring; the state is predicted by local linearization ``x + int_0^dt expm(F s) ds f(x)``
   (the seed's eq. 16 writes the continuous model); the Jacobian is taken at the posterior;
   ``dt`` is the actual spacing of the sample times;
-* the input over ``[t_{k-1}, t_k]`` is the current of sample k-1 (zero-order hold); a NaN current
-  holds the last valid one (0 before any); a NaN speed drops that row of the update (both NaN:
-  predict only);
+* the input over ``[t_{k-1}, t_k]`` (``input_model``): by default the mean of its two samples
+  with the variance of an edge at an unknown instant, ``dI^2 / 12``, plus a channel-timing
+  allowance, propagated through ``Gamma B``; ``"hold"`` is the seed's held ``u_{k-1}`` (eq. 16).
+  A NaN current holds the last valid one (0 before any); a NaN speed drops that row of the
+  update (both NaN: predict only);
 * ``F44`` (the seed's optional ``-100``) enters the covariance propagation only; the state
   prediction keeps ``dm/dt = 0`` (applied to the state it biases ``m`` toward 0);
 * the covariance update is in Joseph form (as filterpy's EKF) and stored as its upper triangle;
-* alpha and m are non-negative (seed section 3.2): with ``nonnegative`` (default) the updated
-  alpha is clipped at 0 and the prediction wears alpha at the rate ``max(m, 0)``; m-hat itself
-  is not clipped (that would bias it). Without this the filter diverges once alpha nears 0 and
-  m becomes unobservable;
+* noise (``noise_adaptation``): the sensor variances from the running median of the third
+  differences of each speed, the speed process noise by covariance matching of the innovations;
+  an update whose NIS exceeds the gate (``gate_sigma``) is down-weighted and counted;
+* projection (``nonnegative``, seed section 3.2): ``m-hat >= 0``, ``0 <= alpha-hat <= alpha0
+  (1 + alpha_max_rel)``; wear predicted at ``max(m, 0)``;
+* ``alpha0 = None``: estimated over the first ``alpha0_calibration_s`` (least-variance
+  candidate of alpha-hat carried back over the wear, eq. 7); Dn is NaN and the status
+  ``learning`` meanwhile;
+* served statuses (``serving_status``): ``failed`` latched past the threshold, ``learning``
+  before convergence, ``unknown`` while the innovation tests reject (asymmetric hysteresis),
+  else the Dn and RUL levels; prognoses are widened by the stream's record of predicted against
+  realized wear;
 * the first sample initializes the prior: speeds from the configuration or the first
   measurement, ``alpha0``, ``m0`` and ``P0``, and is then used as a measurement.
 """
