@@ -20,16 +20,26 @@ Choices where the seed is silent (docs/methods-deterioration-ekf.md has the reas
   squaring; the state is predicted by local linearization ``x + int_0^dt expm(F s) ds f(x)``
   (the seed's eq. 16 writes the continuous model); the Jacobian is taken at the posterior;
   ``dt`` is the actual spacing of the sample times;
-* the input over ``[t_{k-1}, t_k]`` is the current of sample k-1 (zero-order hold); a NaN current
-  holds the last valid one (0 before any); a NaN speed drops that row of the update (both NaN:
-  predict only);
+* the input over ``[t_{k-1}, t_k]`` (``input_model``): by default the mean of its two samples
+  with the variance of an edge at an unknown instant, ``dI^2 / 12``, plus a channel-timing
+  allowance, propagated through ``Gamma B``; ``"hold"`` is the seed's held ``u_{k-1}`` (eq. 16).
+  A NaN current holds the last valid one (0 before any); a NaN speed drops that row of the
+  update (both NaN: predict only);
 * ``F44`` (the seed's optional ``-100``) enters the covariance propagation only; the state
   prediction keeps ``dm/dt = 0`` (applied to the state it biases ``m`` toward 0);
 * the covariance update is in Joseph form (as filterpy's EKF) and stored as its upper triangle;
-* alpha and m are non-negative (seed section 3.2): with ``nonnegative`` (default) the updated
-  alpha is clipped at 0 and the prediction wears alpha at the rate ``max(m, 0)``; m-hat itself
-  is not clipped (that would bias it). Without this the filter diverges once alpha nears 0 and
-  m becomes unobservable;
+* noise (``noise_adaptation``): the sensor variances from the running median of the third
+  differences of each speed, the speed process noise by covariance matching of the innovations;
+  an update whose NIS exceeds the gate (``gate_sigma``) is down-weighted and counted;
+* projection (``nonnegative``, seed section 3.2): ``m-hat >= 0``, ``0 <= alpha-hat <= alpha0
+  (1 + alpha_max_rel)``; wear predicted at ``max(m, 0)``;
+* ``alpha0 = None``: estimated over the first ``alpha0_calibration_s`` (least-variance
+  candidate of alpha-hat carried back over the wear, eq. 7); Dn is NaN and the status
+  ``learning`` meanwhile;
+* served statuses (``serving_status``): ``failed`` latched past the threshold, ``learning``
+  before convergence, ``unknown`` while the innovation tests reject (asymmetric hysteresis),
+  else the Dn and RUL levels; prognoses are widened by the stream's record of predicted against
+  realized wear;
 * the first sample initializes the prior: speeds from the configuration or the first
   measurement, ``alpha0``, ``m0`` and ``P0``, and is then used as a measurement.
 """
@@ -852,14 +862,20 @@ def _predicted_rate(
     return float(-change / seg_d.sum())
 
 
-def _record_rate_error(vec: FloatArray, t_s: float, ell: float, var_ell: float) -> None:
-    """Compare the wear (``-d ln alpha``) realized since the previous prognosis with what that
-    prognosis predicted, and add the relative error, the part of its square the filter's
-    variances explain, and both changes to the stream's record."""
+def _record_rate_error(
+    vec: FloatArray, t_s: float, ell: float, var_ell: float, rate_now: float
+) -> None:
+    """Compare the wear (``-d ln alpha``) realized since the previous prognosis with the
+    predicted one (trapezoid of the rates predicted then and now under the assumed load, so
+    that the drift of the rate as alpha wears is not counted as an error), and add the
+    relative error, the part of its square the filter's variances explain, and both changes to
+    the stream's record."""
     t0 = vec[kern.ST_HIST_T]
     rate = vec[kern.ST_HIST_RATE]
     if not (math.isfinite(t0) and math.isfinite(rate) and rate > 0.0 and t_s > t0):
         return
+    if math.isfinite(rate_now) and rate_now > 0.0:
+        rate = 0.5 * (rate + rate_now)
     predicted = rate * (t_s - t0)
     realized = vec[kern.ST_HIST_ELL] - ell
     if not (math.isfinite(realized) and math.isfinite(var_ell)):
@@ -943,8 +959,12 @@ def prognosis_at(config: DekfConfig, row: FloatArray, vec: FloatArray) -> RulEst
         vec[kern.ST_FAILED] = 1.0
     ell = math.log(x[2]) if x[2] > 0.0 else math.nan
     var_ell = float(cov[2, 2]) / (x[2] * x[2]) if x[2] > 0.0 else math.nan
+    # the record compares only predictions made once m-hat has converged (the wear rate of a
+    # converging filter says nothing about the model's error)
+    converged = x[3] > 0.0 and math.sqrt(max(cov[3, 3], 0.0)) <= config.rul_converged_m_rel_std * x[3]
+    rate_now = _predicted_rate(config, segments, x[2], x[3]) if converged else math.nan
     if config.rul_model_error:
-        _record_rate_error(vec, t_s, ell, var_ell)
+        _record_rate_error(vec, t_s, ell, var_ell, rate_now)
     extra_var = rate_error_var(vec) if config.rul_model_error else 0.0
     ratio = rate_ratio(vec) if config.rul_model_error else 1.0
     # an estimated alpha0 moves the failure level alpha0 (1 - Dn_f): a relative error eps of
@@ -971,12 +991,7 @@ def prognosis_at(config: DekfConfig, row: FloatArray, vec: FloatArray) -> RulEst
     vec[kern.ST_HIST_T] = t_s
     vec[kern.ST_HIST_ELL] = ell
     vec[kern.ST_HIST_VAR] = var_ell
-    # the record compares only predictions made once m-hat has converged (the wear rate of a
-    # converging filter says nothing about the model's error)
-    converged = x[3] > 0.0 and math.sqrt(max(cov[3, 3], 0.0)) <= config.rul_converged_m_rel_std * x[3]
-    vec[kern.ST_HIST_RATE] = (
-        _predicted_rate(config, segments, x[2], x[3]) if converged else math.nan
-    )
+    vec[kern.ST_HIST_RATE] = rate_now
     vec[kern.ST_RUL_STATUS] = STATUSES.index(status)
     assumption: dict[str, Any] = {
         "load": rulmod.load_to_dict(config.rul_load),

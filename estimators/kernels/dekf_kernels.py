@@ -63,7 +63,7 @@ CFG_INV_J2 = 38  # 1 / J2
 CFG_DT_NOMINAL = 39  # nominal sample period (0: use the actual spacing)
 CFG_INPUT_INTERVAL = 40  # 1.0: interval-mean input with edge-timing variance; 0.0: held input
 CFG_INPUT_TIMING = 41  # channel skew/jitter allowance (s)
-CFG_ADAPT_MEMORY = 42  # memory of the Sage-Husa noise estimate (s); 0: R fixed
+CFG_ADAPT_MEMORY = 42  # memory of the noise estimates (s); 0: R and Q fixed
 CFG_GATE = 43  # 2: NIS gates for 1 and 2 measured channels (inf: no gating)
 CFG_ALPHA_MAX = 45  # alpha-hat <= alpha0 * this (projection)
 CFG_M_WALK = 46  # relative random walk of m per sqrt(s)
