@@ -51,15 +51,11 @@ ACTUATOR_KINDS: dict[str, ActuatorKind] = {
         description="Roller-on-tire friction drive (motor current A, motor and wheel speeds "
         "rad/s) -> contact deterioration EKF and RUL",
         channels=("current", "motor_speed", "wheel_speed"),
-        # Prognosis tuning: a random walk of 1e-13 per sample (at 1 kHz) on the wear rate m
-        # instead of the seed's 3.3e-5, which leaves m so uncertain that RUL intervals are
-        # unusable (docs/validation.md, "Run to failure"). The seed's Q stays the estimator's
-        # own default and tracks abrupt changes of m faster.
-        # The tuning is per sample at 1 kHz, so the kind also states that period (absolute time
-        # stamps then do not jitter the discretization).
-        default_estimators={
-            "deterioration_ekf": {"q_diag": [0.0, 0.0, 0.0, 1e-13], "sample_period_s": 0.001}
-        },
+        # The estimator's own defaults carry the prognosis tuning (a random walk on the wear rate
+        # relative to its size, m_walk_rel, independent of the sample rate). The kind states the
+        # nominal 1 kHz period so that rounded absolute time stamps do not jitter the
+        # discretization.
+        default_estimators={"deterioration_ekf": {"sample_period_s": 0.001}},
     ),
     "ema_voltage": ActuatorKind(
         name="ema_voltage",

@@ -230,7 +230,6 @@ DRIVE_WEAR_RATES = (0.001, 0.01, 0.003)
 #: RUL levels for the demo drives (stream seconds), scaled to their short lives.
 DRIVE_ESTIMATORS = {
     "deterioration_ekf": {
-        "q_diag": [0.0, 0.0, 0.0, 1e-13],
         "sample_period_s": 1.0 / DRIVE_RATE_HZ,
         "rul_watch_s": 600.0,
         "rul_alert_s": 120.0,
