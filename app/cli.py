@@ -69,6 +69,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
         port=port,
         log_level=args.log_level,
         ws_max_size=s.ws_max_frame_bytes,
+        ws_ping_interval=s.ws_ping_interval_s,
+        ws_ping_timeout=s.ws_ping_timeout_s,
         timeout_graceful_shutdown=math.ceil(s.shutdown_timeout_s),
     )
     try:

@@ -41,6 +41,10 @@ class Settings(BaseSettings):
     ws_subscriber_queue: int = Field(default=1000, gt=0)
     ws_auth_timeout_s: float = Field(default=10.0, gt=0)
     ws_close_timeout_s: float = Field(default=10.0, gt=0)
+    # Keepalive pings on every WebSocket (uvicorn's own defaults): a peer that answers no ping
+    # within the timeout is dropped.
+    ws_ping_interval_s: float = Field(default=20.0, gt=0)
+    ws_ping_timeout_s: float = Field(default=20.0, gt=0)
     ws_result_poll_s: float = Field(default=1.0, gt=0)
     socket_send_buffer_bytes: int | None = Field(default=None, gt=0)
     shutdown_timeout_s: float = Field(default=10.0, gt=0)

@@ -36,7 +36,9 @@ class LiveServer:
         self.extra_env = extra_env or {}
         self.proc: subprocess.Popen[bytes] | None = None
 
-    def start(self, timeout_s: float = 120.0) -> None:
+    def start(self, timeout_s: float = 300.0) -> None:
+        # Bounded but generous: with a cold numba cache the first server compiles every kernel
+        # before /readyz answers, which takes minutes on a busy two-core machine.
         env = {
             **os.environ,
             "FLEETHEALTH_DATABASE_URL": self.db_url,

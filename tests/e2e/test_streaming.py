@@ -398,6 +398,13 @@ def small_queue_server(tmp_path: Path) -> Any:
             "FLEETHEALTH_WS_SUBSCRIBER_QUEUE": "8",
             "FLEETHEALTH_PROCESSOR_MAX_SAMPLES_PER_TXN": "5",
             "FLEETHEALTH_SOCKET_SEND_BUFFER_BYTES": "8192",
+            # The stalled subscriber reads nothing (not even pings) until ingest has finished,
+            # which takes longer than the defaults on a busy machine: the 1013 close frame must
+            # wait in the send queue behind the unread events for as long as the test runs,
+            # rather than the connection being dropped first by keepalive or the close timeout.
+            "FLEETHEALTH_WS_CLOSE_TIMEOUT_S": "600",
+            "FLEETHEALTH_WS_PING_INTERVAL_S": "600",
+            "FLEETHEALTH_WS_PING_TIMEOUT_S": "600",
         },
     )
     server.start()
