@@ -142,6 +142,7 @@ class Processor:
 
     def _apply_stream(self, actuator_pk: int) -> int:
         applied = 0
+        replayed: set[str] = set()
         while not self._stop.is_set():
             t0 = time.perf_counter()
             try:
@@ -155,7 +156,12 @@ class Processor:
                         is_sqlite=self.db.is_sqlite,
                     )
             except StateUnreadable as exc:
+                if exc.estimator in replayed:
+                    # A state the estimator just wrote cannot be read back: a bug, not an upgrade.
+                    self._attempt_failed(actuator_pk, exc)
+                    return applied
                 if self._replay(actuator_pk, exc):
+                    replayed.add(exc.estimator)
                     continue
                 return applied
             except Exception as exc:

@@ -131,7 +131,6 @@ class _StreamConn:
         missing = [seq for seq in self.inflight if seq not in self.ready]
         if not missing:
             return
-
         messages, failure = await run_in_threadpool(service.missed_results, self.db, self.actuator_pk, missing)
         for msg in messages:
             self.ready[msg["seq"]] = msg

@@ -19,6 +19,7 @@ from app.main import create_app
 from app.models import Actuator, TelemetryBatch
 from app.processing import repository
 from estimators import fakf
+from estimators.base import StateVersionError
 from tests.app.conftest import Api, make_settings
 from tests.conftest import make_series
 
@@ -178,3 +179,22 @@ def test_a_stream_connection_to_a_failed_stream_is_told_why(api: Api, db_url: st
             ws.receive_json()
     assert closed.value.code == 1011
     assert api.health()["last_logged_seq"] == 1 and api.health()["last_applied_seq"] == 0
+
+
+def test_a_state_that_cannot_be_read_back_after_a_replay_fails_the_stream(
+    api_retrying: Api, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    api = api_retrying
+    s = make_series(2 * N, seed=24)
+    api.setup_actuator()
+    assert _send(api, "ema1", 0, s).status_code == 202
+
+    def never_readable(data: bytes) -> object:
+        raise StateVersionError("a FAKF state this build writes but cannot read (a bug)")
+
+    monkeypatch.setattr(fakf, "load_state", never_readable)
+    r = _send(api, "ema1", 1, s, wait=60.0)
+    assert r.status_code == 409 and r.json()["error"] == "StreamFailed", r.text
+    h = api.health()
+    assert h["status"] == "failed" and "3 times" in h["failure"] and "StateUnreadable" in h["failure"]
+    assert h["last_applied_seq"] == 1
