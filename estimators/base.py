@@ -235,7 +235,10 @@ class EstimatorKind(Protocol):
 
     NAME: str
     STATE_VERSION: int
-    CONFIG_MODEL: type[EstimatorConfigModel]
+
+    @property
+    def CONFIG_MODEL(self) -> type[EstimatorConfigModel]:  # noqa: N802 (a module constant)
+        """The kind's public configuration model (read-only, so a subclass satisfies it)."""
 
     def parse_config(self, raw: Mapping[str, Any]) -> Any:
         """Validate a JSON-like mapping; raise :class:`ConfigError` naming the problem."""

@@ -39,13 +39,10 @@ class _EstimatorConfigsBase(BaseModel):
 
 def _estimator_configs_model() -> type[BaseModel]:
     """``{estimator name: config}`` with one optional field per estimator kind, typed by that
-    kind's config model (its settings, types, defaults and units appear in the OpenAPI); a kind
-    without a config model takes a free JSON object, validated by the service."""
+    kind's config model (its settings, types, defaults and units appear in the OpenAPI)."""
     fields: dict[str, Any] = {}
     for name in sorted(ESTIMATORS):
-        model = config_model(name)
-        typ: Any = model if model is not None else dict[str, Any]
-        fields[name] = (typ | None, Field(default=None, description=f"Configuration of {name}"))
+        fields[name] = (config_model(name) | None, Field(default=None, description=f"Configuration of {name}"))
     return create_model(
         "EstimatorConfigs",
         __base__=_EstimatorConfigsBase,
