@@ -725,16 +725,25 @@ class IsolationModel(EstimatorConfigModel):
 class DarrFekfConfigModel(EstimatorConfigModel):
     """Configuration of the darr_fekf estimator (``docs/methods-darr-fekf.md``, section 9)."""
 
-    channels: ChannelsModel = Field(default_factory=lambda: ChannelsModel.model_validate({}))
+    channels: ChannelsModel = Field(
+        default_factory=lambda: ChannelsModel.model_validate({}),
+        description="model channel -> stream channel name (default: the sha_ema kind's names)",
+    )
     sample_period_s: _Positive = Field(1.0e-4, description="nominal sample period, s")
-    parameters: ParametersModel = Field(default_factory=lambda: ParametersModel.model_validate({}))
+    parameters: ParametersModel = Field(
+        default_factory=lambda: ParametersModel.model_validate({}),
+        description="nominal model parameters, SI units (default: the seed's Table 1 values)",
+    )
     differentiator_window_s: _Positive = Field(
         0.05, description="smoother span, s (the residuals' lag is half of it)"
     )
     max_missing_fraction: float = Field(
         0.1, ge=0.0, lt=1.0, description="most held (missing) samples in a window"
     )
-    thresholds: ThresholdsModel = Field(default_factory=lambda: ThresholdsModel.model_validate({}))
+    thresholds: ThresholdsModel = Field(
+        default_factory=lambda: ThresholdsModel.model_validate({}),
+        description="residual thresholds: fixed, calibrated (checked) or from a reference run",
+    )
     min_duration_s: _NonNegative = Field(
         0.002, description="time above threshold before a residual counts, s"
     )
@@ -749,13 +758,20 @@ class DarrFekfConfigModel(EstimatorConfigModel):
     max_candidate_size: int = Field(3, ge=1, le=6, strict=True, description="largest set")
     max_candidates: int = Field(100, ge=1, le=10_000, strict=True, description="most sets")
     subsystems: SubsystemsModel = Field(
-        default_factory=lambda: SubsystemsModel.model_validate(DEFAULT_SUBSYSTEMS)
+        default_factory=lambda: SubsystemsModel.model_validate(DEFAULT_SUBSYSTEMS),
+        description="subsystem estimators (EKF or FEKF) run on implicated subsystems",
     )
     health_window_samples: int = Field(
         10_000, ge=1, le=100_000_000, strict=True, description="health window, samples"
     )
-    sensors: SensorChecksModel = Field(default_factory=lambda: SensorChecksModel.model_validate({}))
-    isolation: IsolationModel = Field(default_factory=lambda: IsolationModel.model_validate({}))
+    sensors: SensorChecksModel = Field(
+        default_factory=lambda: SensorChecksModel.model_validate({}),
+        description="stuck and noisy sensor checks on each channel",
+    )
+    isolation: IsolationModel = Field(
+        default_factory=lambda: IsolationModel.model_validate({}),
+        description="the residual-shape fit that tells sensor from parameter faults",
+    )
 
     @model_validator(mode="after")
     def _calibration_window(self) -> DarrFekfConfigModel:
