@@ -22,6 +22,10 @@ class Settings(BaseSettings):
     max_body_bytes: int = Field(default=256 * 1024 * 1024, gt=0)
     max_batch_samples: int = Field(default=5_000_000, gt=0)
     max_wait_s: float = Field(default=60.0, ge=0)
+    # Input bounds on every batch and frame (app/telemetry/validation.py, docs/operations.md).
+    max_abs_value: float = Field(default=1e12, gt=0, le=2**53)
+    max_time_s: float = Field(default=1e10, gt=0)
+    max_future_s: float = Field(default=86_400.0, ge=0)
     sqlite_synchronous: Literal["FULL", "NORMAL"] = "FULL"
     processor_enabled: bool = True
     processor_scan_interval_s: float = Field(default=2.0, gt=0)

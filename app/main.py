@@ -21,6 +21,7 @@ from app.health import router as health_router
 from app.processing.processor import Processor
 from app.system import router as system_router
 from app.telemetry import router as telemetry_router
+from app.telemetry.validation import ControlCharGuard
 from app.websocket import router as websocket_router
 from estimators.registry import ESTIMATORS
 
@@ -86,6 +87,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         lifespan=lifespan,
     )
     install_handlers(app)
+    app.add_middleware(ControlCharGuard)
     for module in (
         system_router,
         fleet_router,

@@ -6,10 +6,12 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from app.telemetry.validation import Identifier
+
 
 class KeyCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    name: str = Field(default="", max_length=100)
+    name: Identifier = Field(default="", max_length=100)
     scopes: list[Literal["ingest", "read", "admin"]] = Field(min_length=1)
 
 

@@ -17,6 +17,7 @@ from pydantic import (
 
 from app.errors import InvalidConfig
 from app.status import HealthStatus
+from app.telemetry.validation import Identifier
 from estimators.base import config_error
 from estimators.registry import ESTIMATORS, config_model
 
@@ -57,7 +58,7 @@ EstimatorConfigs = _estimator_configs_model()
 class AircraftCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
     tail: str = Field(min_length=1, max_length=32, pattern=r"^[A-Za-z0-9][A-Za-z0-9\-]*$")
-    description: str | None = Field(default=None, max_length=500)
+    description: Identifier | None = Field(default=None, max_length=500)
 
 
 class AircraftPublic(BaseModel):
@@ -75,7 +76,7 @@ class ActuatorCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
     actuator_id: str = Name
     kind: str = Field(description="Actuator kind, e.g. ema_voltage")
-    channels: list[str] | None = Field(
+    channels: list[Identifier] | None = Field(
         default=None, description="Channel names the telemetry carries (default: the kind's)"
     )
     estimators: EstimatorConfigs | None = Field(  # type: ignore[valid-type]

@@ -13,6 +13,7 @@ from app.deps import DbDep, IngestDep, ProcessorDep, SettingsDep
 from app.errors import DomainError, PayloadTooLarge, StreamFailed, error_responses, json_response
 from app.ingest import TimeParams, media_type
 from app.telemetry import service
+from app.telemetry.validation import BatchLimits
 
 router = APIRouter(prefix="/v1", tags=["telemetry"])
 
@@ -115,7 +116,8 @@ async def post_telemetry(
             batch_id=batch_id or idempotency_key, t0=t0, sample_rate_hz=sample_rate_hz, end_of_run=end_of_run
         )
         ack = await run_in_threadpool(
-            service.ingest_body, db, p.operator_id, tail, actuator_id, body, mt, params, settings.max_batch_samples
+            service.ingest_body, db, p.operator_id, tail, actuator_id, body, mt, params, settings.max_batch_samples,
+            BatchLimits.from_settings(settings),
         )
     except DomainError as exc:
         BATCHES_REJECTED.labels(exc.name).inc()

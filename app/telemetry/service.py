@@ -19,6 +19,7 @@ from app.fleet import service as fleet
 from app.ingest import TIME_COLUMN, ParsedBatch, TimeParams, client_seq_of, parse_body, parse_frame
 from app.models import Actuator, TelemetryBatch
 from app.telemetry import repository
+from app.telemetry.validation import DEFAULT_LIMITS, BatchLimits, check_batch, decoding_guard
 
 
 @dataclass(frozen=True)
@@ -121,6 +122,7 @@ def ingest_body(
     media_type: str,
     params: TimeParams,
     max_samples: int,
+    limits: BatchLimits = DEFAULT_LIMITS,
 ) -> Ack:
     """Parse a REST body and log it, committed on return.
 
@@ -129,17 +131,29 @@ def ingest_body(
     """
     with db.read() as s:
         channels = list(fleet.get_actuator(s, operator_id, tail, actuator_id).channels)
-    parsed = parse_body(body, media_type, params, channels, max_samples)
+    with decoding_guard():
+        parsed = parse_body(body, media_type, params, channels, max_samples)
+    check_batch(parsed, limits)
     with db.write() as s:
         act = fleet.get_actuator(s, operator_id, tail, actuator_id, lock=True)
         return log_batch(s, act, parsed)
 
 
 def ingest_frame(
-    db: Database, actuator_pk: int, channels: list[str], data: str | bytes, max_samples: int
+    db: Database,
+    actuator_pk: int,
+    channels: list[str],
+    data: str | bytes,
+    max_samples: int,
+    limits: BatchLimits = DEFAULT_LIMITS,
 ) -> tuple[int, Ack]:
-    """Parse a WebSocket frame and log it, committed on return: ``(client_seq, ack)``."""
-    client_seq, parsed = parse_frame(data, channels, max_samples)
+    """Parse a WebSocket frame and log it, committed on return: ``(client_seq, ack)``.
+
+    The same value checks as a REST batch (:func:`app.telemetry.validation.check_batch`).
+    """
+    with decoding_guard():
+        client_seq, parsed = parse_frame(data, channels, max_samples)
+    check_batch(parsed, limits)
     with db.write() as s:
         act = repository.actuator_for_update(s, actuator_pk)
         if act is None:

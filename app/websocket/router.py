@@ -34,6 +34,7 @@ from app.errors import DomainError, IdempotencyConflict, InvalidBatch, StaleBatc
 from app.ingest import UnsupportedFrame
 from app.processing.processor import Processor
 from app.telemetry import service as telemetry
+from app.telemetry.validation import BatchLimits
 from app.websocket import service
 from app.websocket.hub import ALL_FLEET_TYPES, DEFAULT_FLEET_TYPES, Hub, Subscription, public
 
@@ -211,7 +212,7 @@ class _StreamConn:
         try:
             client_seq, ack = await run_in_threadpool(
                 telemetry.ingest_frame, self.db, self.actuator_pk, self.channels, data,
-                self.settings.max_batch_samples,
+                self.settings.max_batch_samples, BatchLimits.from_settings(self.settings),
             )
         except UnsupportedFrame as exc:
             WS_FRAMES.labels("unsupported").inc()
