@@ -262,7 +262,7 @@ def test_nul_in_channel_name_of_batch_refused(api: Api) -> None:
 
 
 def test_ws_nul_in_path_closes_1008(api: Api) -> None:
-    with pytest.raises(WebSocketDisconnect) as closed:
-        with api.c.websocket_connect("/v1/aircraft/N%001/actuators/ema1/stream", headers=api.h) as ws:
-            ws.receive_json()
+    path = "/v1/aircraft/N%001/actuators/ema1/stream"
+    with pytest.raises(WebSocketDisconnect) as closed, api.c.websocket_connect(path, headers=api.h) as ws:
+        ws.receive_json()
     assert closed.value.code == 1008
