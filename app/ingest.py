@@ -502,7 +502,9 @@ def _read_arrow(body: bytes, limits: DecodeLimits) -> pa.Table:
                 raise InvalidBatch(f"batch decodes to more than {limits.max_bytes} bytes, the limit "
                                    f"for {limits.max_samples} samples of "
                                    f"{len(limits.expected_channels)} channels and t: split it")
-            batches.append(pa.ipc.read_record_batch(message, schema))
+            batch = pa.ipc.read_record_batch(message, schema)
+            batch.validate()  # buffer sizes consistent with the declared length (cheap, no scan)
+            batches.append(batch)
         return pa.Table.from_batches(batches, schema=schema)
     except (pa.ArrowInvalid, pa.ArrowTypeError, OSError, ValueError, StopIteration) as exc:
         raise InvalidBatch(f"body is not an Arrow IPC stream: {exc}") from None
