@@ -21,6 +21,9 @@ class Settings(BaseSettings):
     bootstrap_operator: str = "default"
     max_body_bytes: int = Field(default=256 * 1024 * 1024, gt=0)
     max_batch_samples: int = Field(default=5_000_000, gt=0)
+    # Upper bound of the bytes one batch may decode to (an Arrow body's decompressed buffers);
+    # the bound applied is the smaller of this and max_batch_samples x (channels + 1) x 9 bytes.
+    max_batch_decoded_bytes: int = Field(default=1024 * 1024 * 1024, gt=0)
     max_wait_s: float = Field(default=60.0, ge=0)
     # Input bounds on every batch and frame (app/telemetry/validation.py, docs/operations.md).
     max_abs_value: float = Field(default=1e12, gt=0, le=2**53)

@@ -3,6 +3,13 @@
 Missing samples are data: ``null`` in JSON, an empty cell or ``NaN`` in CSV, a null or NaN in
 Arrow all become NaN, which the estimators predict through. Everything else that is not a finite
 number is refused with :class:`~app.errors.InvalidBatch` naming the channel and position.
+
+Every decoder is bounded before it allocates, whatever the input (a few kilobytes of zstd can
+declare tens of millions of rows): an Arrow IPC stream is read message by message and each record
+batch's declared row count and decompressed buffer sizes are checked against the limits before
+the batch is decoded; a CSV or JSON body's rows / values are counted on the raw bytes before it
+is parsed. The limits are the batch's sample limit and a decoded-bytes limit,
+:func:`decoded_bytes_limit`.
 """
 
 from __future__ import annotations
@@ -10,6 +17,7 @@ from __future__ import annotations
 import hashlib
 import io
 import math
+import struct
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -19,6 +27,7 @@ import orjson
 import pyarrow as pa
 import pyarrow.csv as pacsv
 
+from app.config import get_settings
 from app.errors import InvalidBatch, UnsupportedMediaType
 
 JSON_TYPES = ("application/json",)
@@ -27,6 +36,12 @@ ARROW_TYPES = ("application/vnd.apache.arrow.stream",)
 SUPPORTED_TYPES = JSON_TYPES + CSV_TYPES + ARROW_TYPES
 TIME_COLUMN = "t"
 MAX_BATCH_ID_LEN = 128
+# Bytes a decoded sample may take per column: 8 for the float64 value, 1 of allowance for the
+# validity bitmap (1 bit) and the alignment padding of Arrow buffers.
+DECODED_BYTES_PER_VALUE = 9
+# Allowance of JSON values that are not samples: batch_id (at most MAX_BATCH_ID_LEN characters,
+# each possibly a comma), t0, sample_rate_hz, end_of_run.
+JSON_VALUE_SLACK = MAX_BATCH_ID_LEN + 16
 
 
 @dataclass(frozen=True)
@@ -74,20 +89,63 @@ def media_type(content_type: str | None) -> str:
     return mt
 
 
+@dataclass(frozen=True)
+class DecodeLimits:
+    """What one batch may decode to: ``max_samples`` rows, ``max_bytes`` decoded bytes."""
+
+    expected_channels: tuple[str, ...]
+    max_samples: int
+    max_bytes: int
+
+
+def decoded_bytes_limit(n_channels: int, max_samples: int, cap_bytes: int | None = None) -> int:
+    """Decoded bytes a batch of ``n_channels`` channels may take.
+
+    ``max_samples * (n_channels + 1) * DECODED_BYTES_PER_VALUE``: every channel and the time
+    column at the sample limit, as float64 with validity bitmaps; capped by ``cap_bytes``
+    (setting ``max_batch_decoded_bytes`` when not given) so an actuator with many channels
+    does not raise the bound without limit.
+    """
+    if cap_bytes is None:
+        cap_bytes = get_settings().max_batch_decoded_bytes
+    return min(max_samples * (n_channels + 1) * DECODED_BYTES_PER_VALUE, cap_bytes)
+
+
+def _limits(expected_channels: Sequence[str], max_samples: int, max_decoded_bytes: int | None) -> DecodeLimits:
+    return DecodeLimits(
+        tuple(expected_channels),
+        max_samples,
+        decoded_bytes_limit(len(expected_channels), max_samples, max_decoded_bytes),
+    )
+
+
+def _too_many_samples(n: int, max_samples: int, *, at_least: bool = False) -> InvalidBatch:
+    """The sample-limit error, one message for every decoder and for :func:`_validate`."""
+    return InvalidBatch(f"batch has {'at least ' if at_least else ''}{n} samples; the limit is "
+                        f"{max_samples}: split it")
+
+
 def parse_body(
-    body: bytes, mt: str, params: TimeParams, expected_channels: Sequence[str], max_samples: int
+    body: bytes,
+    mt: str,
+    params: TimeParams,
+    expected_channels: Sequence[str],
+    max_samples: int,
+    max_decoded_bytes: int | None = None,
 ) -> ParsedBatch:
+    """Decode and validate a REST body; ``max_decoded_bytes`` caps :func:`decoded_bytes_limit`."""
     if not body:
         raise InvalidBatch("empty body")
+    limits = _limits(expected_channels, max_samples, max_decoded_bytes)
     end_of_run = params.end_of_run
     if mt in JSON_TYPES:
-        doc = _json_object(body)
+        doc = _json_object(body, limits)
         batch_id, t_s, columns = _parse_json_doc(doc, params)
         end_of_run = _end_of_run(doc.get("end_of_run", end_of_run))
     elif mt in CSV_TYPES:
-        batch_id, t_s, columns = _parse_table(_read_csv(body), params)
+        batch_id, t_s, columns = _parse_table(_read_csv(body, limits), params)
     else:
-        batch_id, t_s, columns = _parse_table(_read_arrow(body), params)
+        batch_id, t_s, columns = _parse_table(_read_arrow(body, limits), params)
     return _validate(batch_id, t_s, columns, expected_channels, max_samples, end_of_run)
 
 
@@ -134,7 +192,10 @@ def _client_seq(value: Any) -> int:
 
 
 def parse_frame(
-    data: str | bytes, expected_channels: Sequence[str], max_samples: int
+    data: str | bytes,
+    expected_channels: Sequence[str],
+    max_samples: int,
+    max_decoded_bytes: int | None = None,
 ) -> tuple[int, ParsedBatch]:
     """A WebSocket frame of samples -> (client_seq, batch).
 
@@ -142,8 +203,11 @@ def parse_frame(
     "sample_rate_hz", "channels": {...}, "end_of_run": false}``. Binary frames are an Arrow IPC
     stream whose schema metadata holds ``client_seq`` (and ``t0`` / ``sample_rate_hz`` when
     there is no ``t`` column, ``end_of_run`` = ``"true"`` on the last frame of a run).
+    Bounded like :func:`parse_body`.
     """
+    limits = _limits(expected_channels, max_samples, max_decoded_bytes)
     if isinstance(data, str):
+        _check_json_values(data.encode(), limits)
         try:
             doc = orjson.loads(data)
         except orjson.JSONDecodeError as exc:
@@ -159,7 +223,7 @@ def parse_frame(
         batch_id, t_s, columns = _parse_json_doc(body, TimeParams(frame_batch_id(seq), None, None), frame=True)
         end_of_run = _end_of_run(body.get("end_of_run", False))
     else:
-        table = _read_arrow(data)
+        table = _read_arrow(data, limits)
         meta = {k.decode(): v.decode() for k, v in (table.schema.metadata or {}).items()}
         try:
             seq = _client_seq(int(meta["client_seq"]))
@@ -199,7 +263,24 @@ def _arrow_to_float(arr: pa.Array | pa.ChunkedArray, name: str) -> np.ndarray:
     return np.asarray(arr.to_numpy(zero_copy_only=False))
 
 
-def _json_object(body: bytes) -> dict[str, Any]:
+def _check_json_values(body: bytes, limits: DecodeLimits) -> None:
+    """Refuse, before parsing, a JSON document with more values than the limits allow.
+
+    Parsed, each JSON number costs a Python float and a list slot (about 32 bytes) for as little
+    as 2 bytes of text, so the body limit alone does not bound memory. The values of a list of
+    ``k`` elements are separated by ``k - 1`` commas, so the count of commas bounds the values
+    from above: beyond every channel and ``t`` at the sample limit (plus a small allowance for
+    the other fields), the batch cannot be valid.
+    """
+    allowed = limits.max_samples * (len(limits.expected_channels) + 1) + JSON_VALUE_SLACK
+    if body.count(b",") > allowed:
+        raise InvalidBatch(f"batch holds more values than {limits.max_samples} samples of "
+                           f"{len(limits.expected_channels)} channels and t; the limit is "
+                           f"{limits.max_samples} samples: split it")
+
+
+def _json_object(body: bytes, limits: DecodeLimits) -> dict[str, Any]:
+    _check_json_values(body, limits)
     try:
         doc = orjson.loads(body)
     except orjson.JSONDecodeError as exc:
@@ -244,22 +325,188 @@ def _regular_time(t0: Any, rate: Any, n: int) -> np.ndarray:
     return float(t0) + np.arange(n, dtype=np.float64) / float(rate)
 
 
-def _read_csv(body: bytes) -> pa.Table:
+_CSV_NULLS = ["", "NaN", "nan", "NA", "null"]
+_CSV_BLOCK_BYTES = 1 << 20
+
+
+def _too_many_columns(n: int, limits: DecodeLimits) -> InvalidBatch:
+    """More columns than the channels and t: refused before any is decoded (each costs memory)."""
+    return InvalidBatch(f"batch has {n} columns; this actuator has {len(limits.expected_channels)} "
+                        f"channels ({', '.join(limits.expected_channels)}) and {TIME_COLUMN!r}")
+
+
+def _read_csv(body: bytes, limits: DecodeLimits) -> pa.Table:
+    """Read a CSV body, its size checked against ``limits`` before it is decoded whole.
+
+    The header is read from the first block (``_CSV_BLOCK_BYTES``) only: more columns than the
+    actuator's channels and ``t`` are refused. Rows are at most the newlines after the header;
+    only when that bound is above the sample limit (blank lines or quoted newlines could make it
+    loose) are the rows counted exactly, block by block with every column read as text, stopping
+    as soon as the limit is passed. The full read then infers each column's type over all rows.
+    """
     try:
+        head = pacsv.open_csv(
+            io.BytesIO(body), read_options=pacsv.ReadOptions(block_size=_CSV_BLOCK_BYTES)
+        )
+        names = head.schema.names
+        head.close()
+        if len(names) > len(limits.expected_channels) + 1:
+            raise _too_many_columns(len(names), limits)
+        if body.count(b"\n") > limits.max_samples + 1:
+            rows = 0
+            reader = pacsv.open_csv(
+                io.BytesIO(body),
+                read_options=pacsv.ReadOptions(block_size=_CSV_BLOCK_BYTES),
+                convert_options=pacsv.ConvertOptions(
+                    column_types={name: pa.string() for name in names}
+                ),
+            )
+            for block in reader:
+                rows += block.num_rows
+                if rows > limits.max_samples:
+                    raise _too_many_samples(rows, limits.max_samples, at_least=True)
         return pacsv.read_csv(
             io.BytesIO(body),
-            convert_options=pacsv.ConvertOptions(
-                null_values=["", "NaN", "nan", "NA", "null"], strings_can_be_null=True
-            ),
+            convert_options=pacsv.ConvertOptions(null_values=_CSV_NULLS, strings_can_be_null=True),
         )
     except (pa.ArrowInvalid, pa.ArrowTypeError) as exc:
         raise InvalidBatch(f"CSV could not be read: {exc}") from None
 
 
-def _read_arrow(body: bytes) -> pa.Table:
+# Arrow IPC flatbuffer layout (format/Message.fbs, format/Schema.fbs of Apache Arrow): the
+# message header is a union whose type 3 is RecordBatch and 2 DictionaryBatch; RecordBatch's
+# fields are length (0), nodes (1), buffers (2, structs {offset: int64, length: int64}),
+# compression (3).
+_HEADER_DICTIONARY_BATCH = 2
+_HEADER_RECORD_BATCH = 3
+
+
+class _Flat:
+    """Bounds-checked reads of a flatbuffer: a malformed one raises ``ValueError``."""
+
+    def __init__(self, buf: bytes) -> None:
+        self.buf = buf
+
+    def scalar(self, fmt: str, pos: int) -> int:
+        size = struct.calcsize(fmt)
+        if pos < 0 or pos + size > len(self.buf):
+            raise ValueError("flatbuffer offset out of range")
+        value: int = struct.unpack_from("<" + fmt, self.buf, pos)[0]
+        return value
+
+    def field(self, table: int, index: int) -> int | None:
+        """Absolute position of a table's field, None when absent."""
+        vtable = table - self.scalar("i", table)
+        vsize = self.scalar("H", vtable)
+        slot = 4 + 2 * index
+        if slot + 2 > vsize:
+            return None
+        off = self.scalar("H", vtable + slot)
+        return table + off if off else None
+
+    def deref(self, pos: int) -> int:
+        return pos + self.scalar("I", pos)
+
+
+def _record_batch_header(metadata: bytes) -> tuple[int, int, list[tuple[int, int]], bool]:
+    """``(header type, declared rows, buffers (offset, length), compressed)`` of a message.
+
+    For a message that is not a record batch (schema, dictionary), only its header type is read.
+    """
+    fb = _Flat(metadata)
+    message = fb.deref(0)
+    type_pos = fb.field(message, 1)
+    header_type = fb.scalar("B", type_pos) if type_pos is not None else 0
+    if header_type != _HEADER_RECORD_BATCH:
+        return (header_type, 0, [], False)
+    header_pos = fb.field(message, 2)
+    if header_pos is None:
+        raise ValueError("record batch message without header")
+    batch = fb.deref(header_pos)
+    length_pos = fb.field(batch, 0)
+    rows = fb.scalar("q", length_pos) if length_pos is not None else 0
+    buffers: list[tuple[int, int]] = []
+    buffers_pos = fb.field(batch, 2)
+    if buffers_pos is not None:
+        vec = fb.deref(buffers_pos)
+        n = fb.scalar("I", vec)
+        if 4 + 16 * n > len(metadata):
+            raise ValueError("buffer vector out of range")
+        for i in range(n):
+            buffers.append((fb.scalar("q", vec + 4 + 16 * i), fb.scalar("q", vec + 12 + 16 * i)))
+    compressed = fb.field(batch, 3) is not None
+    return (header_type, rows, buffers, compressed)
+
+
+def _decoded_bytes(body: pa.Buffer | None, buffers: list[tuple[int, int]], compressed: bool) -> int:
+    """Bytes a record batch's buffers take once decoded.
+
+    A compressed buffer starts with its uncompressed length (int64, -1 when stored as is), the
+    size Arrow allocates before it decompresses; a lie about it fails decompression.
+    """
+    size = body.size if body is not None else 0
+    view = memoryview(body) if body is not None else memoryview(b"")
+    total = 0
+    for offset, length in buffers:
+        if offset < 0 or length < 0 or offset + length > size:
+            raise ValueError("record batch buffer out of range of the message body")
+        if not compressed or length == 0:
+            total += length
+            continue
+        if length < 8:
+            raise ValueError("compressed buffer shorter than its length prefix")
+        declared: int = struct.unpack_from("<q", view, offset)[0]
+        if declared == -1:
+            total += length - 8
+        elif declared < 0:
+            raise ValueError("negative uncompressed buffer length")
+        else:
+            total += declared
+    return total
+
+
+def _read_arrow(body: bytes, limits: DecodeLimits) -> pa.Table:
+    """Read an Arrow IPC stream record batch by record batch, bounded before each is decoded.
+
+    Each message's metadata is read first: a record batch whose declared rows take the total
+    above the sample limit, or whose buffers (decompressed sizes, for zstd / lz4 bodies) take
+    the decoded total above ``limits.max_bytes``, is refused before it is decompressed; so is a
+    schema with more columns than the channels and ``t`` (each is cast to float64). Dictionary
+    batches are refused (the columns must be numbers).
+    """
+    batches: list[pa.RecordBatch] = []
+    rows = 0
+    decoded = 0
     try:
-        return pa.ipc.open_stream(pa.py_buffer(body)).read_all()
-    except (pa.ArrowInvalid, pa.ArrowTypeError, OSError) as exc:
+        reader = pa.ipc.MessageReader.open_stream(pa.py_buffer(body))
+        schema = pa.ipc.read_schema(reader.read_next_message())
+        if len(schema) > len(limits.expected_channels) + 1:
+            raise _too_many_columns(len(schema), limits)
+        while True:
+            try:
+                message = reader.read_next_message()
+            except StopIteration:
+                break
+            header_type, n, buffers, compressed = _record_batch_header(message.metadata.to_pybytes())
+            if header_type == _HEADER_DICTIONARY_BATCH:
+                raise InvalidBatch("dictionary-encoded columns are not supported; numbers are needed")
+            if header_type != _HEADER_RECORD_BATCH:
+                raise InvalidBatch(f"unexpected Arrow IPC message {message.type!r} in the stream")
+            if n < 0:
+                raise ValueError("negative record batch length")
+            rows += n
+            if rows > limits.max_samples:
+                raise _too_many_samples(rows, limits.max_samples, at_least=True)
+            decoded += _decoded_bytes(message.body, buffers, compressed)
+            if decoded > limits.max_bytes:
+                raise InvalidBatch(f"batch decodes to more than {limits.max_bytes} bytes, the limit "
+                                   f"for {limits.max_samples} samples of "
+                                   f"{len(limits.expected_channels)} channels and t: split it")
+            batch = pa.ipc.read_record_batch(message, schema)
+            batch.validate()  # buffer sizes consistent with the declared length (cheap, no scan)
+            batches.append(batch)
+        return pa.Table.from_batches(batches, schema=schema)
+    except (pa.ArrowInvalid, pa.ArrowTypeError, OSError, ValueError, StopIteration) as exc:
         raise InvalidBatch(f"body is not an Arrow IPC stream: {exc}") from None
 
 
@@ -306,7 +553,7 @@ def _validate(
     if n == 0:
         raise InvalidBatch("empty batch: no samples")
     if n > max_samples:
-        raise InvalidBatch(f"batch has {n} samples; the limit is {max_samples}: split it")
+        raise _too_many_samples(n, max_samples)
     if not np.all(np.isfinite(t_s)):
         k = int(np.argmin(np.isfinite(t_s)))
         raise InvalidBatch(f"t[{k}] is not a finite number")
