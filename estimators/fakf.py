@@ -22,8 +22,9 @@ Choices where the seed is silent (see docs/methods.md, "FAKF"):
   unit-diagonal Gram matrix above ``condition_limit``), when the current hardly varies
   (std below ``min_current_std``), with fewer than 10 usable rows, or when the fitted model is
   unstable (a pole of ``1 + a0 z^-1 + a1 z^-2`` on or outside the unit circle). A refusal is an
-  ``identification_failed`` event, health windows (and the step) report "alert" until a model
-  is found, and identification is retried on the next window of the same size (no outputs
+  ``identification_failed`` event, health windows (and the step) report "unknown" with the
+  reason until a model is found (a refusal says nothing about the actuator's health, only that
+  the estimator cannot vouch for any output), and identification is retried on the next window of the same size (no outputs
   meanwhile);
 * ``q = r = "auto"``: half the variance of the identification's one-step residual each, so that
   the steady innovation variance S is close to the residual variance and NIS is near 1 on data
@@ -750,7 +751,7 @@ CLOSED_BY_CODES = {
 def _health(row: FloatArray, config: FakfConfig, previous: Status | None) -> HealthWindow:
     """One health window from its kernel row.
 
-    Status: ``learning`` before a model exists (``alert`` after a refused identification);
+    Status: ``learning`` before a model exists (``unknown`` after a refused identification);
     with a model, the worst of the graded indicators and ``unknown`` when the prior lost to
     persistence; a window with fewer than ``min_graded_samples`` scored samples is not graded
     and carries ``previous`` (the last graded window's status), saying so.
@@ -805,7 +806,7 @@ def _health(row: FloatArray, config: FakfConfig, previous: Status | None) -> Hea
     if row[kern.WIN_READY] != 1.0:
         fail = int(row[kern.WIN_LAST_FAIL])
         if fail:
-            statuses.append("alert")
+            statuses.append("unknown")
             reasons.append("identification failed: " + _reason_text(fail, None, config))
         else:
             statuses.append("learning")
@@ -891,7 +892,7 @@ def step(config: FakfConfig, state: FakfState, batch: Batch) -> tuple[FakfState,
 
     ``batch.end_of_run`` closes the segment after the batch's last sample (an empty batch may
     carry it): the partial health window is reported and the filter restarts on the next
-    usable voltage. While no model exists the step reports ``learning`` (``alert`` after a
+    usable voltage. While no model exists the step reports ``learning`` (``unknown`` after a
     refused identification), so a stream is never ``ok`` before it has a model.
 
     Raises:
@@ -948,14 +949,14 @@ def step(config: FakfConfig, state: FakfState, batch: Batch) -> tuple[FakfState,
 
 
 def _learning_status(state: FakfState) -> StatusReport | None:
-    """``learning`` (or ``alert`` after a refused identification) while no model exists; None
+    """``learning`` (or ``unknown`` after a refused identification) while no model exists; None
     once a model is in use (the health windows' statuses stand)."""
     if state.model_ready:
         return None
     fail = int(state.part("last_failure_code")[0])
     if fail:
         return StatusReport(
-            "alert",
+            "unknown",
             (f"identification failed ({_REASON_NAMES.get(fail, 'unknown')}); retrying",),
         )
     seen = int(state.part("identification_count")[0])

@@ -329,7 +329,7 @@ def test_back_pressure_stops_reading_at_the_window_and_drops_nothing(paused_serv
 
 
 def _status_flip_batch(n: int = 800) -> dict[str, Any]:
-    """Constant current: identification cannot succeed, so the status turns alert."""
+    """Constant current: identification cannot succeed, so the status turns unknown."""
     t = np.arange(n) * 0.001
     return {"t_s": t, "channels": {"current": np.ones(n), "voltage": np.ones(n)}}
 
@@ -367,7 +367,7 @@ def test_fleet_events_are_filtered_by_operator_and_tail(live_server: LiveServer)
             return await collect(only_a, 1), await collect(everything, 2), await collect(stranger, 0)
 
     a, both, none = asyncio.run(run())
-    assert [(e["type"], e["tail"], e["from"], e["to"]) for e in a] == [("status_changed", "FA", "learning", "alert")]
+    assert [(e["type"], e["tail"], e["from"], e["to"]) for e in a] == [("status_changed", "FA", "learning", "unknown")]
     assert sorted(e["tail"] for e in both) == ["FA", "FB"]
     assert all(e["type"] == "status_changed" and e["reasons"] for e in both)
     assert none == []

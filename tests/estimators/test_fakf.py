@@ -214,7 +214,7 @@ def test_unstable_fit_is_an_event_then_retried() -> None:
     assert events[0].detail["reason_code"] == "unstable_model"
     assert events[0].detail["max_pole_modulus"] == pytest.approx(math.sqrt(1.2), rel=0.02)
     assert "unstable" in events[0].detail["reason"]
-    assert health[0].status == "alert"
+    assert health[0].status == "unknown"
     assert "identification failed" in health[0].reasons[0]
     assert np.all(np.isnan(s["voltage_estimate"][: 2 * n_id]))
     # the next window mixes the two models in its first rows but is stable: identified there
@@ -233,7 +233,7 @@ def test_no_excitation_is_an_event() -> None:
     _, s, health, events = run(config, np.arange(n) * 0.01, current, voltage)
     assert [e.kind for e in events] == ["identification_failed"] * 3
     assert all(e.detail["reason_code"] == "low_current_excitation" for e in events)
-    assert all(h.status == "alert" for h in health)
+    assert all(h.status == "unknown" for h in health)
     assert np.all(np.isnan(s["voltage_estimate"]))
 
 
