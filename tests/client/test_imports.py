@@ -155,8 +155,9 @@ _ALONE = textwrap.dedent(
         importlib.import_module(info.name)
     from fleethealth_client import FleetHealthClient, encode_batch, encode_frame
 
-    with FleetHealthClient("http://127.0.0.1:1", "key") as client:
-        pass
+    # Building a client opens its HTTP connection pool: only the client's own dependencies.
+    with FleetHealthClient("http://127.0.0.1:1/", "key") as client:
+        assert client._core.base_url == "http://127.0.0.1:1"
     batch = encode_batch("json", "b-1", {{"current": [1.0, float("nan")]}}, t_s=[0.0, 0.01])
     assert batch.content.endswith(b'"channels":{{"current":[1.0,null]}}}}'), batch.content
     assert encode_frame(1, {{"current": [1.0]}}, t_s=[0.0]).startswith('{{"type":"samples"')
