@@ -27,7 +27,6 @@ import orjson
 import pyarrow as pa
 import pyarrow.csv as pacsv
 
-from app.config import get_settings
 from app.errors import InvalidBatch, UnsupportedMediaType
 
 JSON_TYPES = ("application/json",)
@@ -102,13 +101,12 @@ def decoded_bytes_limit(n_channels: int, max_samples: int, cap_bytes: int | None
     """Decoded bytes a batch of ``n_channels`` channels may take.
 
     ``max_samples * (n_channels + 1) * DECODED_BYTES_PER_VALUE``: every channel and the time
-    column at the sample limit, as float64 with validity bitmaps; capped by ``cap_bytes``
-    (setting ``max_batch_decoded_bytes`` when not given) so an actuator with many channels
-    does not raise the bound without limit.
+    column at the sample limit, as float64 with validity bitmaps; capped by ``cap_bytes`` (the
+    service passes setting ``max_batch_decoded_bytes``) so an actuator with many channels does
+    not raise the bound without limit.
     """
-    if cap_bytes is None:
-        cap_bytes = get_settings().max_batch_decoded_bytes
-    return min(max_samples * (n_channels + 1) * DECODED_BYTES_PER_VALUE, cap_bytes)
+    bound = max_samples * (n_channels + 1) * DECODED_BYTES_PER_VALUE
+    return bound if cap_bytes is None else min(bound, cap_bytes)
 
 
 def _limits(expected_channels: Sequence[str], max_samples: int, max_decoded_bytes: int | None) -> DecodeLimits:

@@ -132,7 +132,7 @@ def ingest_body(
     with db.read() as s:
         channels = list(fleet.get_actuator(s, operator_id, tail, actuator_id).channels)
     with decoding_guard():
-        parsed = parse_body(body, media_type, params, channels, max_samples)
+        parsed = parse_body(body, media_type, params, channels, max_samples, limits.max_decoded_bytes)
     check_batch(parsed, limits)
     with db.write() as s:
         act = fleet.get_actuator(s, operator_id, tail, actuator_id, lock=True)
@@ -152,7 +152,7 @@ def ingest_frame(
     The same value checks as a REST batch (:func:`app.telemetry.validation.check_batch`).
     """
     with decoding_guard():
-        client_seq, parsed = parse_frame(data, channels, max_samples)
+        client_seq, parsed = parse_frame(data, channels, max_samples, limits.max_decoded_bytes)
     check_batch(parsed, limits)
     with db.write() as s:
         act = repository.actuator_for_update(s, actuator_pk)

@@ -49,12 +49,13 @@ _CONTROL = re.compile(r"[\x00-\x1f\x7f]")
 
 @dataclass(frozen=True)
 class BatchLimits:
-    """Bounds on a batch's values and times (settings ``FLEETHEALTH_MAX_ABS_VALUE``,
-    ``FLEETHEALTH_MAX_TIME_S``, ``FLEETHEALTH_MAX_FUTURE_S``)."""
+    """Bounds on a batch's size, values and times (settings ``FLEETHEALTH_MAX_BATCH_DECODED_BYTES``,
+    ``FLEETHEALTH_MAX_ABS_VALUE``, ``FLEETHEALTH_MAX_TIME_S``, ``FLEETHEALTH_MAX_FUTURE_S``)."""
 
     max_abs_value: float = 1e12
     max_time_s: float = 1e10
     max_future_s: float = 86_400.0
+    max_decoded_bytes: int = 1024 * 1024 * 1024
 
     @classmethod
     def from_settings(cls, settings: Any) -> BatchLimits:
@@ -62,6 +63,7 @@ class BatchLimits:
             max_abs_value=float(settings.max_abs_value),
             max_time_s=float(settings.max_time_s),
             max_future_s=float(settings.max_future_s),
+            max_decoded_bytes=int(settings.max_batch_decoded_bytes),
         )
 
 

@@ -12,11 +12,13 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 import pytest
+from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
 from app.errors import InvalidBatch
 from app.ingest import ARROW_TYPES, CSV_TYPES, JSON_TYPES, TimeParams, parse_body, parse_frame
-from tests.app.conftest import Api
+from app.main import create_app
+from tests.app.conftest import Api, arrow_bytes, make_settings
 
 TEL = "/v1/aircraft/N1/actuators/ema1/telemetry"
 CHANNELS = ["current", "voltage"]
@@ -183,3 +185,18 @@ def test_a_json_body_with_too_many_values_is_refused_before_parsing() -> None:
         parse_body(body, JSON_TYPES[0], TimeParams(None, None, None), CHANNELS, 1000)
     with pytest.raises(InvalidBatch, match="the limit is 1000 samples"):
         parse_frame(body.decode().replace('"batch_id": "b1"', '"type": "samples", "client_seq": 1'), CHANNELS, 1000)
+
+
+def test_the_decoded_bytes_setting_bounds_what_the_service_accepts(db_url: str) -> None:
+    # The service's own setting, not a process-wide default, caps the decoded size: 1,000
+    # samples of three float64 columns decode to about 27 kB, above a 10 kB cap.
+    settings = make_settings(db_url, max_batch_decoded_bytes=10_000)
+    with TestClient(create_app(settings)) as client:
+        api = Api(client)
+        api.setup_actuator()
+        body = arrow_bytes({"t": np.arange(1000) * 1e-3, "current": np.zeros(1000), "voltage": np.ones(1000)})
+        r = api.post(TEL + "?batch_id=b1", content=body, headers={"content-type": ARROW_TYPES[0]})
+        assert r.status_code == 400 and "decodes to more than" in r.json()["detail"], r.text
+        small = arrow_bytes({"t": np.arange(100) * 1e-3, "current": np.zeros(100), "voltage": np.ones(100)})
+        r = api.post(TEL + "?batch_id=b2", content=small, headers={"content-type": ARROW_TYPES[0]})
+        assert r.status_code == 202, r.text
