@@ -41,6 +41,9 @@ class Settings(BaseSettings):
     processor_retry_backoff_max_s: float = Field(default=60.0, gt=0)
     store_sample_outputs: bool = True
     log_retention_s: float | None = Field(default=None, gt=0)
+    # Deleted aircraft and actuators keep their data this long, then the processor's periodic
+    # scan purges them (default 30 days).
+    deleted_retention_s: float = Field(default=30 * 86_400.0, gt=0)
     warm_kernels: bool = True
     # WebSocket streaming (docs/api.md, "Streaming").
     ws_max_frame_bytes: int = Field(default=16 * 1024 * 1024, gt=0)

@@ -51,6 +51,18 @@ class IdempotencyConflict(DomainError):
     status_code = 409
 
 
+class Gone(DomainError):
+    """The aircraft or actuator was deleted (its data is kept until it is purged)."""
+
+    status_code = 410
+
+
+class InvalidCursor(DomainError):
+    """A pagination cursor that this endpoint did not issue, or for another order."""
+
+    status_code = 400
+
+
 class PayloadTooLarge(DomainError):
     status_code = 413
 
@@ -84,6 +96,7 @@ def error_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
         403: "The key lacks the needed scope",
         404: "Not found (or owned by another operator)",
         409: "Conflict",
+        410: "Deleted (kept until purged)",
         413: "Body too large",
         415: "Unsupported content type",
         422: "Invalid payload or configuration",

@@ -74,6 +74,8 @@ class Aircraft(Base):
     tail: Mapped[str] = mapped_column(String(32))
     description: Mapped[str | None] = mapped_column(String(500), nullable=True)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    # Soft deletion: hidden from reads and ingest, purged after FLEETHEALTH_DELETED_RETENTION_S.
+    deleted_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
 
     actuators: Mapped[list[Actuator]] = relationship(back_populates="aircraft", lazy="raise")
 
@@ -94,6 +96,8 @@ class Actuator(Base):
     last_logged_t_s: Mapped[float | None] = mapped_column(Float, nullable=True)
     # The highest client sequence number of a streamed frame logged (WebSocket resume).
     last_client_seq: Mapped[int | None] = mapped_column(BigInteger, nullable=True)
+    # Soft deletion (see Aircraft.deleted_at).
+    deleted_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
 
     aircraft: Mapped[Aircraft] = relationship(back_populates="actuators", lazy="raise")
     stream: Mapped[Stream] = relationship(lazy="raise", uselist=False)
@@ -136,6 +140,15 @@ class EstimatorState(Base):
     # The estimator's latest diagnostic picture (fault isolation), replaced on each batch.
     diagnosis_t_s: Mapped[float | None] = mapped_column(Float, nullable=True)
     diagnosis: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
+    # The config version in effect (estimator_config_versions) and the baseline (epoch of the
+    # physical part: a repair or replacement starts a new one) the state belongs to.
+    config_version: Mapped[int] = mapped_column(Integer, default=1, server_default="1")
+    baseline: Mapped[int] = mapped_column(Integer, default=1, server_default="1")
+    # A maintenance action recorded while batches of the old part were still pending: the
+    # estimator restarts from its initial state, as baseline reset_baseline, at batch
+    # reset_at_seq (the first one logged after the action).
+    reset_at_seq: Mapped[int | None] = mapped_column(BigInteger, nullable=True)
+    reset_baseline: Mapped[int | None] = mapped_column(Integer, nullable=True)
 
 
 class TelemetryBatch(Base):
@@ -168,6 +181,9 @@ class HealthWindowRow(Base):
     actuator_pk: Mapped[int] = mapped_column(ForeignKey("actuators.id", ondelete="CASCADE"))
     estimator: Mapped[str] = mapped_column(String(32))
     seq: Mapped[int] = mapped_column(BigInteger)
+    # Which config version and baseline produced the row.
+    config_version: Mapped[int] = mapped_column(Integer, default=1, server_default="1")
+    baseline: Mapped[int] = mapped_column(Integer, default=1, server_default="1")
     t_start_s: Mapped[float] = mapped_column(Float)
     t_end_s: Mapped[float] = mapped_column(Float)
     n_samples: Mapped[int] = mapped_column(Integer)
@@ -185,6 +201,9 @@ class SampleOutputRow(Base):
     actuator_pk: Mapped[int] = mapped_column(ForeignKey("actuators.id", ondelete="CASCADE"))
     estimator: Mapped[str] = mapped_column(String(32))
     seq: Mapped[int] = mapped_column(BigInteger)
+    # Which config version and baseline produced the row.
+    config_version: Mapped[int] = mapped_column(Integer, default=1, server_default="1")
+    baseline: Mapped[int] = mapped_column(Integer, default=1, server_default="1")
     t_first_s: Mapped[float] = mapped_column(Float)
     t_last_s: Mapped[float] = mapped_column(Float)
     n_samples: Mapped[int] = mapped_column(Integer)
@@ -198,6 +217,9 @@ class EstimatorEventRow(Base):
     actuator_pk: Mapped[int] = mapped_column(ForeignKey("actuators.id", ondelete="CASCADE"))
     estimator: Mapped[str] = mapped_column(String(32))
     seq: Mapped[int] = mapped_column(BigInteger)
+    # Which config version and baseline produced the row.
+    config_version: Mapped[int] = mapped_column(Integer, default=1, server_default="1")
+    baseline: Mapped[int] = mapped_column(Integer, default=1, server_default="1")
     t_s: Mapped[float] = mapped_column(Float)
     kind: Mapped[str] = mapped_column(String(48))
     detail: Mapped[dict[str, Any]] = mapped_column(JSON)
@@ -212,6 +234,9 @@ class RulEstimateRow(Base):
     actuator_pk: Mapped[int] = mapped_column(ForeignKey("actuators.id", ondelete="CASCADE"))
     estimator: Mapped[str] = mapped_column(String(32))
     seq: Mapped[int] = mapped_column(BigInteger)
+    # Which config version and baseline produced the row.
+    config_version: Mapped[int] = mapped_column(Integer, default=1, server_default="1")
+    baseline: Mapped[int] = mapped_column(Integer, default=1, server_default="1")
     t_s: Mapped[float] = mapped_column(Float)
     mean_s: Mapped[float | None] = mapped_column(Float, nullable=True)
     std_s: Mapped[float | None] = mapped_column(Float, nullable=True)
@@ -225,3 +250,42 @@ class RulEstimateRow(Base):
     assumption: Mapped[dict[str, Any]] = mapped_column(JSON)
     status: Mapped[str] = mapped_column(String(8))
     reasons: Mapped[list[str]] = mapped_column(JSON)
+
+
+class EstimatorConfigVersion(Base):
+    """Every configuration an estimator of an actuator has had, from the batch it applies to."""
+
+    __tablename__ = "estimator_config_versions"
+    __table_args__ = (UniqueConstraint("actuator_pk", "estimator", "version"),)
+    id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"), primary_key=True)
+    actuator_pk: Mapped[int] = mapped_column(ForeignKey("actuators.id", ondelete="CASCADE"))
+    estimator: Mapped[str] = mapped_column(String(32))
+    version: Mapped[int] = mapped_column(Integer)
+    config: Mapped[dict[str, Any]] = mapped_column(JSON)
+    # The first batch (stream seq) applied with this version.
+    from_seq: Mapped[int] = mapped_column(BigInteger)
+    # "kept": the estimator carried its state on; "reset": it restarted from its initial state.
+    state: Mapped[str] = mapped_column(String(8), default="kept")
+    comment: Mapped[str | None] = mapped_column(String(2000), nullable=True)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    created_by_key_id: Mapped[int | None] = mapped_column(Integer, nullable=True)
+
+
+class MaintenanceAction(Base):
+    """An inspection, repair or replacement of an actuator; a repair or replacement starts a
+    new baseline from batch ``from_seq``."""
+
+    __tablename__ = "maintenance_actions"
+    __table_args__ = (Index("ix_maintenance_actions_actuator", "actuator_pk", "id"),)
+    id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"), primary_key=True)
+    actuator_pk: Mapped[int] = mapped_column(ForeignKey("actuators.id", ondelete="CASCADE"))
+    action: Mapped[str] = mapped_column(String(16))
+    performed_by: Mapped[str] = mapped_column(String(200))
+    performed_at: Mapped[datetime] = mapped_column(UTCDateTime)
+    comment: Mapped[str | None] = mapped_column(String(2000), nullable=True)
+    # The baseline in force after the action, and the first batch it covers (None: inspection).
+    baseline: Mapped[int] = mapped_column(Integer)
+    from_seq: Mapped[int | None] = mapped_column(BigInteger, nullable=True)
+    status_before: Mapped[str] = mapped_column(String(8))
+    recorded_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    recorded_by_key_id: Mapped[int | None] = mapped_column(Integer, nullable=True)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import (
     BaseModel,
@@ -16,6 +16,7 @@ from pydantic import (
 )
 
 from app.errors import InvalidConfig
+from app.pagination import CURSOR_DOC
 from app.status import HealthStatus
 from app.telemetry.validation import Identifier
 from estimators.base import config_error
@@ -70,6 +71,19 @@ class AircraftPublic(BaseModel):
 
 class AircraftList(BaseModel):
     items: list[AircraftPublic]
+    next_cursor: str | None = Field(default=None, description=CURSOR_DOC)
+
+
+class AircraftUpdate(BaseModel):
+    """Editable fields of an aircraft (the tail is its identity and cannot change)."""
+
+    model_config = ConfigDict(extra="forbid")
+    description: Identifier | None = Field(default=None, max_length=500)
+
+
+class Deleted(BaseModel):
+    deleted_at: datetime
+    purge_after: datetime = Field(description="When the data is removed for good")
 
 
 class ActuatorCreate(BaseModel):
@@ -104,11 +118,97 @@ class ActuatorPublic(BaseModel):
     estimators: dict[str, dict[str, Any]] = Field(
         description="Estimator name -> its configuration with every default filled in"
     )
+    config_versions: dict[str, int] = Field(
+        default_factory=dict, description="Estimator name -> its config version in force"
+    )
+    baseline: int = Field(
+        default=1, description="Baseline (epoch of the physical part) the estimators are in"
+    )
     created_at: datetime
 
 
 class ActuatorList(BaseModel):
     items: list[ActuatorPublic]
+    next_cursor: str | None = Field(default=None, description=CURSOR_DOC)
+
+
+class ActuatorUpdate(BaseModel):
+    """New settings for attached estimators: a new config version each, from the next batch."""
+
+    model_config = ConfigDict(extra="forbid")
+    estimators: dict[Identifier, dict[str, Any]] = Field(
+        description="Estimator name -> the settings to change (merged onto the current ones, "
+        "nested settings member by member; see EstimatorConfigs for each kind's settings)",
+    )
+    reset_state: bool = Field(
+        default=False,
+        description="Restart the estimators from their initial state instead of carrying their "
+        "state over (needed when the change alters the state's layout)",
+    )
+    comment: Identifier | None = Field(default=None, max_length=2000)
+
+
+class ConfigVersionPublic(BaseModel):
+    model_config = ConfigDict(from_attributes=True)
+    estimator: str
+    version: int
+    config: dict[str, Any]
+    from_seq: int = Field(description="First batch (stream seq) applied with this version")
+    state: Literal["kept", "reset"] = Field(description="Whether the estimator kept its state")
+    comment: str | None
+    created_at: datetime
+
+
+class ConfigVersionList(BaseModel):
+    items: list[ConfigVersionPublic]
+    next_cursor: str | None = Field(default=None, description=CURSOR_DOC)
+
+
+class ActuatorUpdated(BaseModel):
+    actuator: ActuatorPublic
+    versions: list[ConfigVersionPublic] = Field(description="The config versions created")
+
+
+MaintenanceKind = Literal["inspection", "repair", "replacement"]
+
+
+class MaintenanceCreate(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    action: MaintenanceKind = Field(
+        description="`inspection` records only; `repair` and `replacement` start a new baseline: "
+        "the estimators restart from their initial state (RUL starts again, `failed` clears)"
+    )
+    performed_by: Identifier = Field(min_length=1, max_length=200, description="Who did the work")
+    performed_at: datetime | None = Field(
+        default=None, description="When the work was done, with a time zone (default: now)"
+    )
+    comment: Identifier | None = Field(default=None, max_length=2000)
+
+    @model_validator(mode="after")
+    def _aware(self) -> MaintenanceCreate:
+        if self.performed_at is not None and self.performed_at.utcoffset() is None:
+            raise ValueError("performed_at needs a time zone (e.g. 2026-12-02T08:00:00Z)")
+        return self
+
+
+class MaintenancePublic(BaseModel):
+    model_config = ConfigDict(from_attributes=True)
+    id: int
+    action: MaintenanceKind
+    performed_by: str
+    performed_at: datetime
+    comment: str | None
+    baseline: int = Field(description="Baseline in force after the action")
+    from_seq: int | None = Field(
+        description="First batch (stream seq) of the new baseline; null for an inspection"
+    )
+    status_before: HealthStatus
+    recorded_at: datetime
+
+
+class MaintenanceList(BaseModel):
+    items: list[MaintenancePublic]
+    next_cursor: str | None = Field(default=None, description=CURSOR_DOC)
 
 
 class KindPublic(BaseModel):
@@ -152,3 +252,4 @@ class FleetAircraft(BaseModel):
 
 class FleetHealth(BaseModel):
     aircraft: list[FleetAircraft]
+    next_cursor: str | None = Field(default=None, description=CURSOR_DOC)

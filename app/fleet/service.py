@@ -3,38 +3,66 @@ the fleet board's order."""
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Mapping
+from datetime import datetime, timedelta
 from typing import Any, Literal
 
+import numpy as np
 from sqlalchemy.orm import Session
 
-from app.errors import AlreadyExists, InvalidConfig, NotFound
+from app.errors import AlreadyExists, Gone, InvalidConfig, NotFound
 from app.faults import service as faults
 from app.fleet import repository
 from app.fleet.repository import BoardRow
 from app.ingest import TIME_COLUMN
-from app.models import Actuator, Aircraft
+from app.models import (
+    Actuator,
+    Aircraft,
+    EstimatorConfigVersion,
+    EstimatorState,
+    MaintenanceAction,
+    Stream,
+    utcnow,
+)
+from app.pagination import Order
 from estimators.base import STATUS_ORDER, ConfigError, worst_status
 from estimators.registry import ACTUATOR_KINDS, ESTIMATORS
 
 FleetSort = Literal["status", "tail", "updated", "rul"]
 
 
+def _deleted(what: str, at: datetime) -> str:
+    return f"{what} was deleted at {at.isoformat()}; its data is kept until it is purged"
+
+
 def get_aircraft(session: Session, operator_id: int, tail: str) -> Aircraft:
+    """The operator's live aircraft; 404 when missing, 410 when deleted."""
     ac = repository.aircraft_by_tail(session, operator_id, tail)
     if ac is None:
         raise NotFound(f"aircraft {tail!r} not found")
+    if ac.deleted_at is not None:
+        raise Gone(_deleted(f"aircraft {tail!r}", ac.deleted_at))
     return ac
 
 
 def create_aircraft(session: Session, operator_id: int, tail: str, description: str | None) -> Aircraft:
     ac = Aircraft(operator_id=operator_id, tail=tail, description=description)
     if not repository.add_aircraft(session, ac):
+        prior = repository.aircraft_by_tail(session, operator_id, tail)
+        if prior is not None and prior.deleted_at is not None:
+            raise AlreadyExists(
+                f"aircraft {tail!r} was deleted at {prior.deleted_at.isoformat()} and its tail is "
+                "taken until its data is purged"
+            )
         raise AlreadyExists(f"aircraft {tail!r} already exists")
     return ac
 
 
-def list_aircraft(session: Session, operator_id: int) -> list[Aircraft]:
-    return repository.list_aircraft(session, operator_id)
+def list_aircraft(
+    session: Session, operator_id: int, after: int | None, order: Order, limit: int
+) -> list[Aircraft]:
+    return repository.list_aircraft(session, operator_id, after=after, order=order, limit=limit)
 
 
 def get_actuator(
@@ -46,15 +74,23 @@ def get_actuator(
     if act is None:
         get_aircraft(session, operator_id, tail)
         raise NotFound(f"actuator {actuator_id!r} not found on aircraft {tail!r}")
+    if act.deleted_at is not None:
+        raise Gone(_deleted(f"actuator {actuator_id!r} of aircraft {tail!r}", act.deleted_at))
     return act
 
 
-def list_actuators(session: Session, aircraft: Aircraft) -> list[Actuator]:
-    return repository.list_actuators(session, aircraft.id)
+def list_actuators(
+    session: Session, aircraft: Aircraft, after: int | None, order: Order, limit: int
+) -> list[Actuator]:
+    return repository.list_actuators(session, aircraft.id, after=after, order=order, limit=limit)
 
 
 def estimator_configs(session: Session, actuator_pk: int) -> dict[str, dict[str, Any]]:
     return repository.estimator_configs(session, actuator_pk)
+
+
+def estimator_rows(session: Session, actuator_pk: int) -> list[EstimatorState]:
+    return repository.estimator_rows(session, actuator_pk)
 
 
 def validate_estimators(
@@ -101,8 +137,225 @@ def create_actuator(
     )
     act = Actuator(aircraft_id=aircraft.id, actuator_id=actuator_id, kind=kind, channels=chans)
     if not repository.add_actuator(session, act, dict(configs)):
-        raise AlreadyExists(f"actuator {actuator_id!r} already exists on aircraft {aircraft.tail!r}")
+        raise AlreadyExists(
+            f"actuator {actuator_id!r} already exists on aircraft {aircraft.tail!r} (a deleted "
+            "actuator keeps its id until its data is purged)"
+        )
     return act, configs
+
+
+# ----------------------------------------------------------------------------- lifecycle
+def update_aircraft(session: Session, aircraft: Aircraft, fields: Mapping[str, Any]) -> Aircraft:
+    """Change an aircraft's editable fields (its description; the tail is its identity)."""
+    if "description" in fields:
+        aircraft.description = fields["description"]
+    session.flush()
+    return aircraft
+
+
+def delete_aircraft(session: Session, aircraft: Aircraft) -> datetime:
+    """Soft-delete an aircraft and its actuators: hidden from reads and ingest at once, their
+    data purged after the retention period."""
+    now = utcnow()
+    aircraft.deleted_at = now
+    for act in repository.live_actuators_of(session, aircraft.id):
+        act.deleted_at = now
+    session.flush()
+    return now
+
+
+def delete_actuator(session: Session, act: Actuator) -> datetime:
+    act.deleted_at = utcnow()
+    session.flush()
+    return act.deleted_at
+
+
+def purge_deleted(session: Session, retention_s: float) -> tuple[int, int]:
+    """Remove for good the aircraft and actuators deleted more than ``retention_s`` ago, with
+    all their data: (aircraft, actuators) purged."""
+    return repository.purge_deleted(session, utcnow() - timedelta(seconds=retention_s))
+
+
+def _merge(base: Mapping[str, Any], change: Mapping[str, Any]) -> dict[str, Any]:
+    """``base`` with the settings of ``change``; nested settings are merged member by member,
+    except a nested setting of another ``kind`` (a different member of a union), which replaces
+    the current one."""
+    out = dict(base)
+    for k, v in change.items():
+        cur = out.get(k)
+        same = isinstance(v, Mapping) and isinstance(cur, Mapping) and v.get("kind", cur.get("kind")) == cur.get("kind")
+        out[k] = _merge(cur, v) if same else v  # type: ignore[arg-type]
+    return out
+
+
+def state_layout(value: Any) -> Any:
+    """The shape of an estimator state (array shapes and dtypes, fields, lengths), not its
+    values: two configurations whose initial states have the same layout read each other's
+    states."""
+    if isinstance(value, np.ndarray):
+        return ("array", value.shape, value.dtype.str)
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return (type(value).__name__, tuple((f.name, state_layout(getattr(value, f.name))) for f in dataclasses.fields(value)))
+    if isinstance(value, tuple | list):
+        return (type(value).__name__, tuple(state_layout(v) for v in value))
+    if isinstance(value, dict):
+        return ("dict", tuple(sorted((str(k), state_layout(v)) for k, v in value.items())))
+    return type(value).__name__
+
+
+def _restart(er: EstimatorState, reason: str) -> None:
+    er.state = None
+    er.status, er.reasons = "learning", [reason]
+    er.diagnosis_t_s, er.diagnosis = None, None
+
+
+def _stream_status(stream: Stream, ests: list[EstimatorState]) -> None:
+    if stream.failure is None:
+        stream.status = worst_status([er.status for er in ests])
+    stream.updated_at = utcnow()
+
+
+def update_estimators(
+    session: Session,
+    act: Actuator,
+    changes: Mapping[str, Mapping[str, Any]],
+    *,
+    reset_state: bool,
+    comment: str | None,
+    key_id: int | None,
+) -> list[EstimatorConfigVersion]:
+    """A new config version of each estimator named in ``changes`` (its settings merged onto
+    the current ones and validated by the kind's config model), in force from the next batch
+    the processor applies.
+
+    The estimator keeps its state unless ``reset_state``; a change that alters the layout of the
+    state (e.g. a different number of models) needs ``reset_state`` (InvalidConfig otherwise).
+    """
+    if not changes:
+        raise InvalidConfig("estimators: name at least one estimator and the settings to change")
+    stream = repository.lock_stream(session, act.id)
+    ests = {er.estimator: er for er in repository.estimator_rows(session, act.id)}
+    unknown = [n for n in changes if n not in ests]
+    if unknown:
+        raise InvalidConfig(
+            f"estimator {unknown[0]!r} is not attached to actuator {act.actuator_id!r} "
+            f"(attached: {', '.join(ests)}); estimators cannot be added to a running stream"
+        )
+    merged = {n: _merge(ests[n].config, dict(c)) for n, c in changes.items()}
+    configs = validate_estimators(merged, list(act.channels))
+    versions = []
+    for name, cfg in configs.items():
+        er, kind = ests[name], ESTIMATORS[name]
+        if not reset_state and er.state is not None:
+            old = state_layout(kind.initial_state(kind.parse_config(er.config)))
+            if old != state_layout(kind.initial_state(kind.parse_config(cfg))):
+                raise InvalidConfig(
+                    f"estimator {name!r}: this change alters the layout of the estimator's state, "
+                    "which cannot carry over; send \"reset_state\": true to restart it from its "
+                    "initial state"
+                )
+        er.config = cfg
+        er.config_version += 1
+        if reset_state:
+            _restart(er, f"restarted with config version {er.config_version}")
+        row = EstimatorConfigVersion(
+            actuator_pk=act.id,
+            estimator=name,
+            version=er.config_version,
+            config=cfg,
+            from_seq=stream.last_applied_seq + 1,
+            state="reset" if reset_state else "kept",
+            comment=comment,
+            created_by_key_id=key_id,
+        )
+        repository.add(session, row)
+        versions.append(row)
+    if reset_state:
+        stream.rul_t_s = stream.rul_q05_s = stream.rul_q50_s = None
+        _stream_status(stream, list(ests.values()))
+    session.flush()
+    return versions
+
+
+def config_versions(
+    session: Session, act: Actuator, estimator: str | None, after: int | None, order: Order, limit: int
+) -> list[EstimatorConfigVersion]:
+    return repository.config_versions(session, act.id, estimator, after=after, order=order, limit=limit)
+
+
+RESETTING_ACTIONS = frozenset({"repair", "replacement"})
+
+
+def start_baseline(er: EstimatorState, baseline: int) -> None:
+    """Restart an estimator from its initial state as ``baseline`` (a repaired or replaced
+    part): its earlier outputs stay, labelled with the earlier baseline."""
+    _restart(er, f"new baseline {baseline} after maintenance")
+    er.baseline = baseline
+    er.reset_at_seq = er.reset_baseline = None
+
+
+def record_maintenance(
+    session: Session,
+    tail: str,
+    actuator_id: str,
+    operator_id: int,
+    *,
+    action: str,
+    performed_by: str,
+    performed_at: datetime | None,
+    comment: str | None,
+    key_id: int | None,
+) -> MaintenanceAction:
+    """Record an inspection, repair or replacement.
+
+    A repair or replacement starts a new baseline with the first batch logged after it: every
+    estimator restarts from its initial state there (a ``failed`` status latched by the old
+    part is cleared, RUL starts again); batches of the old part still pending are applied to
+    the old baseline first. With nothing pending, the restart happens at once. An inspection
+    changes nothing but the record.
+    """
+    act = get_actuator(session, operator_id, tail, actuator_id, lock=True)
+    stream = repository.lock_stream(session, act.id)
+    ests = repository.estimator_rows(session, act.id)
+    status_before = stream.status
+    current = max((er.reset_baseline or er.baseline for er in ests), default=1)
+    baseline = max(current, repository.last_baseline(session, act.id))
+    from_seq: int | None = None
+    if action in RESETTING_ACTIONS:
+        baseline += 1
+        from_seq = act.last_logged_seq + 1
+        if stream.last_applied_seq >= act.last_logged_seq:
+            for er in ests:
+                start_baseline(er, baseline)
+            stream.rul_t_s = stream.rul_q05_s = stream.rul_q50_s = None
+            _stream_status(stream, ests)
+        else:
+            for er in ests:
+                er.reset_at_seq, er.reset_baseline = from_seq, baseline
+    row = MaintenanceAction(
+        actuator_pk=act.id,
+        action=action,
+        performed_by=performed_by,
+        performed_at=performed_at or utcnow(),
+        comment=comment,
+        baseline=baseline,
+        from_seq=from_seq,
+        status_before=status_before,
+        recorded_by_key_id=key_id,
+    )
+    repository.add(session, row)
+    return row
+
+
+def baseline_start(session: Session, actuator_pk: int, baseline: int) -> int:
+    """The first batch (stream seq) of a baseline."""
+    return repository.baseline_start(session, actuator_pk, baseline)
+
+
+def maintenance_actions(
+    session: Session, act: Actuator, after: int | None, order: Order, limit: int
+) -> list[MaintenanceAction]:
+    return repository.maintenance_actions(session, act.id, after=after, order=order, limit=limit)
 
 
 # ----------------------------------------------------------------------------- fleet board
@@ -127,9 +380,31 @@ def _actuator_entry(r: BoardRow, open_faults: list[str]) -> dict[str, Any]:
     }
 
 
-def fleet_board(session: Session, operator_id: int, sort: FleetSort) -> list[dict[str, Any]]:
-    """Every aircraft of the operator with its actuators, worst first by ``STATUS_ORDER``
-    (``sort=status``), by tail, by last update, or by the shortest RUL (5 % quantile)."""
+def _board_key(ac: dict[str, Any], sort: FleetSort) -> list[Any]:
+    """An aircraft's place on the board, as a JSON-safe key of numbers and strings (the
+    board's cursor)."""
+    return [int(v) if isinstance(v, bool) else v for v in _board_sort_key(ac, sort)]
+
+
+def _board_sort_key(ac: dict[str, Any], sort: FleetSort) -> list[Any]:
+    if sort == "rul":
+        best = min((x["rul_q05_s"] for x in ac["actuators"] if x["rul_q05_s"] is not None), default=None)
+        return [*_rul_key(best), ac["tail"]]
+    if sort == "status":
+        return [-STATUS_ORDER[ac["status"]], ac["tail"]]
+    if sort == "updated":
+        up = ac["updated_at"]
+        return [up is None, -(up.timestamp() if up is not None else 0.0), ac["tail"]]
+    return [ac["tail"]]
+
+
+def fleet_board(
+    session: Session, operator_id: int, sort: FleetSort, after: list[Any] | None = None, limit: int | None = None
+) -> tuple[list[dict[str, Any]], list[Any] | None]:
+    """The operator's aircraft with their actuators, worst first by ``STATUS_ORDER``
+    (``sort=status``), by tail, by last update, or by the shortest RUL (5 % quantile): up to
+    ``limit`` aircraft after the board key ``after``, and the key of the last one when more
+    follow."""
     rows = repository.board_rows(session, operator_id)
     components = faults.open_fault_components(
         session, [r.actuator_pk for r in rows if r.actuator_pk is not None]
@@ -148,16 +423,9 @@ def fleet_board(session: Session, operator_id: int, sort: FleetSort) -> list[dic
             acts.sort(key=lambda a: (*_rul_key(a["rul_q05_s"]), a["actuator_id"]))
         else:
             acts.sort(key=lambda a: (-STATUS_ORDER[a["status"]], a["actuator_id"]))
-    out = list(by_tail.values())
-    if sort == "rul":
-        out.sort(
-            key=lambda a: (
-                *_rul_key(min((x["rul_q05_s"] for x in a["actuators"] if x["rul_q05_s"] is not None), default=None)),
-                a["tail"],
-            )
-        )
-    elif sort == "status":
-        out.sort(key=lambda a: (-STATUS_ORDER[a["status"]], a["tail"]))
-    elif sort == "updated":
-        out.sort(key=lambda a: (a["updated_at"] is None, -(a["updated_at"].timestamp() if a["updated_at"] else 0), a["tail"]))
-    return out
+    keyed = sorted(((_board_key(a, sort), a) for a in by_tail.values()), key=lambda ka: ka[0])
+    if after is not None:
+        keyed = [(k, a) for k, a in keyed if k > after]
+    if limit is None or len(keyed) <= limit:
+        return [a for _, a in keyed], None
+    return [a for _, a in keyed[:limit]], keyed[limit - 1][0]

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
+from typing import Any
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
@@ -15,6 +16,7 @@ from app.models import (
     SampleOutputRow,
     Stream,
 )
+from app.pagination import Order, after_key, order_by
 
 
 def stream(session: Session, actuator_pk: int) -> Stream:
@@ -38,13 +40,24 @@ def has_estimator(session: Session, actuator_pk: int, estimator: str) -> bool:
     return session.get(EstimatorState, (actuator_pk, estimator)) is not None
 
 
-def latest_window(session: Session, actuator_pk: int, estimator: str) -> HealthWindowRow | None:
+def latest_window(session: Session, actuator_pk: int, estimator: str, baseline: int) -> HealthWindowRow | None:
+    """The estimator's latest window in ``baseline`` (a replaced part's windows are history)."""
     return session.scalar(
         select(HealthWindowRow)
-        .where(HealthWindowRow.actuator_pk == actuator_pk, HealthWindowRow.estimator == estimator)
+        .where(
+            HealthWindowRow.actuator_pk == actuator_pk,
+            HealthWindowRow.estimator == estimator,
+            HealthWindowRow.baseline == baseline,
+        )
         .order_by(HealthWindowRow.t_end_s.desc())
         .limit(1)
     )
+
+
+def _page(stmt: Any, cols: Sequence[Any], after: Sequence[Any] | None, order: Order, limit: int) -> Any:
+    if after is not None:
+        stmt = stmt.where(after_key(cols, after, order))
+    return stmt.order_by(*order_by(cols, order)).limit(limit)
 
 
 def windows(
@@ -53,9 +66,12 @@ def windows(
     estimator: str | None,
     from_s: float | None,
     to_s: float | None,
+    *,
+    after: Sequence[Any] | None,
+    order: Order,
     limit: int,
 ) -> list[HealthWindowRow]:
-    """Windows whose span meets [from_s, to_s], oldest first."""
+    """Windows whose span meets [from_s, to_s], by (t_end_s, id) in ``order``, after ``after``."""
     stmt = select(HealthWindowRow).where(HealthWindowRow.actuator_pk == actuator_pk)
     if estimator is not None:
         stmt = stmt.where(HealthWindowRow.estimator == estimator)
@@ -63,14 +79,19 @@ def windows(
         stmt = stmt.where(HealthWindowRow.t_end_s >= from_s)
     if to_s is not None:
         stmt = stmt.where(HealthWindowRow.t_start_s <= to_s)
-    stmt = stmt.order_by(HealthWindowRow.t_end_s, HealthWindowRow.estimator).limit(limit)
-    return list(session.scalars(stmt))
+    return list(session.scalars(_page(stmt, [HealthWindowRow.t_end_s, HealthWindowRow.id], after, order, limit)))
 
 
 def sample_outputs(
-    session: Session, actuator_pk: int, estimator: str, from_s: float | None, to_s: float | None
+    session: Session,
+    actuator_pk: int,
+    estimator: str,
+    from_s: float | None,
+    to_s: float | None,
+    order: Order = "asc",
 ) -> Iterator[SampleOutputRow]:
-    """Output blocks that meet [from_s, to_s], in stream order (read lazily)."""
+    """Output blocks that meet [from_s, to_s], in stream order or its reverse, read a few at
+    a time (each block's payload is let go once the caller moves on)."""
     stmt = select(SampleOutputRow).where(
         SampleOutputRow.actuator_pk == actuator_pk, SampleOutputRow.estimator == estimator
     )
@@ -78,24 +99,39 @@ def sample_outputs(
         stmt = stmt.where(SampleOutputRow.t_last_s >= from_s)
     if to_s is not None:
         stmt = stmt.where(SampleOutputRow.t_first_s <= to_s)
-    return iter(session.scalars(stmt.order_by(SampleOutputRow.seq)))
+    stmt = stmt.order_by(*order_by([SampleOutputRow.seq], order)).execution_options(yield_per=16)
+    for row in session.scalars(stmt):
+        yield row
+        session.expunge(row)
 
 
 def events(
-    session: Session, actuator_pk: int, from_s: float | None, to_s: float | None, limit: int
+    session: Session,
+    actuator_pk: int,
+    from_s: float | None,
+    to_s: float | None,
+    *,
+    after: Sequence[Any] | None,
+    order: Order,
+    limit: int,
 ) -> list[EstimatorEventRow]:
     stmt = select(EstimatorEventRow).where(EstimatorEventRow.actuator_pk == actuator_pk)
     if from_s is not None:
         stmt = stmt.where(EstimatorEventRow.t_s >= from_s)
     if to_s is not None:
         stmt = stmt.where(EstimatorEventRow.t_s <= to_s)
-    return list(session.scalars(stmt.order_by(EstimatorEventRow.t_s, EstimatorEventRow.id).limit(limit)))
+    return list(session.scalars(_page(stmt, [EstimatorEventRow.t_s, EstimatorEventRow.id], after, order, limit)))
 
 
-def latest_rul(session: Session, actuator_pk: int, estimator: str) -> RulEstimateRow | None:
+def latest_rul(session: Session, actuator_pk: int, estimator: str, baseline: int) -> RulEstimateRow | None:
+    """The estimator's latest prognosis in ``baseline``."""
     return session.scalar(
         select(RulEstimateRow)
-        .where(RulEstimateRow.actuator_pk == actuator_pk, RulEstimateRow.estimator == estimator)
+        .where(
+            RulEstimateRow.actuator_pk == actuator_pk,
+            RulEstimateRow.estimator == estimator,
+            RulEstimateRow.baseline == baseline,
+        )
         .order_by(RulEstimateRow.t_s.desc())
         .limit(1)
     )
@@ -107,6 +143,9 @@ def ruls(
     estimator: str | None,
     from_s: float | None,
     to_s: float | None,
+    *,
+    after: Sequence[Any] | None,
+    order: Order,
     limit: int,
 ) -> list[RulEstimateRow]:
     stmt = select(RulEstimateRow).where(RulEstimateRow.actuator_pk == actuator_pk)
@@ -116,4 +155,4 @@ def ruls(
         stmt = stmt.where(RulEstimateRow.t_s >= from_s)
     if to_s is not None:
         stmt = stmt.where(RulEstimateRow.t_s <= to_s)
-    return list(session.scalars(stmt.order_by(RulEstimateRow.t_s, RulEstimateRow.id).limit(limit)))
+    return list(session.scalars(_page(stmt, [RulEstimateRow.t_s, RulEstimateRow.id], after, order, limit)))

@@ -1,29 +1,44 @@
-"""The read side: latest health, history, per-sample outputs, events and RUL."""
+"""The read side: latest health, history, per-sample outputs, events and RUL (with
+prognostics' vocabulary: event state, time of event, RUL in usage units)."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 import numpy as np
+import pyarrow as pa
 from sqlalchemy.orm import Session
 
+from app import series
 from app.codec import decode_columns
 from app.errors import NotFound
-from app.health import repository
+from app.fleet import service as fleet
+from app.health import repository, vocabulary
 from app.ingest import TIME_COLUMN
 from app.models import Actuator
+from app.pagination import Order
 from app.processing.messages import event_public, rul_public, window_public
+from app.telemetry import readback
+
+LABELS = ("config_version", "baseline")
+
+
+def _labelled(public: dict[str, Any], row: Any) -> dict[str, Any]:
+    return {**public, **{k: getattr(row, k) for k in LABELS}}
 
 
 def latest_health(session: Session, tail: str, act: Actuator) -> dict[str, Any]:
     stream = repository.stream(session, act.id)
     estimators: dict[str, Any] = {}
     for er in repository.estimators(session, act.id):
-        last = repository.latest_window(session, act.id, er.estimator)
+        last = repository.latest_window(session, act.id, er.estimator, er.baseline)
         estimators[er.estimator] = {
             "status": er.status,
             "reasons": er.reasons,
-            "window": window_public(last) if last is not None else None,
+            "config_version": er.config_version,
+            "baseline": er.baseline,
+            "window": _labelled(window_public(last), last) if last is not None else None,
         }
     return {
         "tail": tail,
@@ -39,7 +54,7 @@ def latest_health(session: Session, tail: str, act: Actuator) -> dict[str, Any]:
     }
 
 
-def _check_estimator(session: Session, act: Actuator, estimator: str | None) -> None:
+def check_estimator(session: Session, act: Actuator, estimator: str | None) -> None:
     if estimator is not None and not repository.has_estimator(session, act.id, estimator):
         raise NotFound(f"estimator {estimator!r} is not attached to actuator {act.actuator_id!r}")
 
@@ -50,14 +65,26 @@ def health_history(
     estimator: str | None,
     from_s: float | None,
     to_s: float | None,
+    after: Sequence[Any] | None,
+    order: Order,
     limit: int,
-) -> list[dict[str, Any]]:
-    _check_estimator(session, act, estimator)
-    return [window_public(r) for r in repository.windows(session, act.id, estimator, from_s, to_s, limit)]
+) -> tuple[list[dict[str, Any]], list[Any] | None]:
+    """A page of windows and the key to continue after (None on the last page)."""
+    check_estimator(session, act, estimator)
+    rows = repository.windows(session, act.id, estimator, from_s, to_s, after=after, order=order, limit=limit + 1)
+    items = [_labelled(window_public(r), r) for r in rows[:limit]]
+    return items, ([rows[limit - 1].t_end_s, rows[limit - 1].id] if len(rows) > limit else None)
 
 
 def _as_list(a: np.ndarray) -> list[float | None]:
     return [None if not np.isfinite(x) else x for x in a.tolist()]
+
+
+def _output_blocks(
+    session: Session, act: Actuator, estimator: str, from_s: float | None, to_s: float | None, order: Order
+) -> Iterator[dict[str, np.ndarray]]:
+    for row in repository.sample_outputs(session, act.id, estimator, from_s, to_s, order):
+        yield decode_columns(row.payload)
 
 
 def sample_outputs(
@@ -66,44 +93,97 @@ def sample_outputs(
     estimator: str,
     from_s: float | None,
     to_s: float | None,
+    after_t: float | None,
+    order: Order,
     max_samples: int,
-) -> dict[str, Any]:
-    _check_estimator(session, act, estimator)
-    parts: list[dict[str, np.ndarray]] = []
-    n = 0
-    truncated = False
+) -> tuple[dict[str, Any], float | None]:
+    """A page of per-sample outputs and the time to continue after (None on the last page)."""
+    check_estimator(session, act, estimator)
+    cols, last = series.page(
+        _output_blocks(session, act, estimator, from_s, to_s, order), from_s, to_s, after_t, order, max_samples
+    )
+    t = cols.pop(TIME_COLUMN)
+    return {"estimator": estimator, "t_s": t.tolist(), "series": {k: _as_list(v) for k, v in cols.items()}}, last
+
+
+def output_export(
+    session: Session, act: Actuator, estimator: str, from_s: float | None, to_s: float | None
+) -> tuple[pa.Schema, Iterator[dict[str, np.ndarray]]]:
+    """The export schema of an estimator's per-sample outputs (time, the outputs of every
+    block, and the ``seq``, ``config_version`` and ``baseline`` of each sample) and an
+    iterator of its blocks in stream order. The schema is read first from the blocks' headers,
+    so a change of outputs between config versions loses no column."""
+    check_estimator(session, act, estimator)
+    names: dict[str, None] = {}
     for row in repository.sample_outputs(session, act.id, estimator, from_s, to_s):
-        cols = decode_columns(row.payload)
-        t = cols[TIME_COLUMN]
-        keep = np.ones(t.shape, dtype=bool)
-        if from_s is not None:
-            keep &= t >= from_s
-        if to_s is not None:
-            keep &= t <= to_s
-        cols = {k: v[keep] for k, v in cols.items()}
-        take = min(len(cols[TIME_COLUMN]), max_samples - n)
-        if take < len(cols[TIME_COLUMN]):
-            truncated = True
-        parts.append({k: v[:take] for k, v in cols.items()})
-        n += take
-        if n >= max_samples:
-            break
-    names = [k for k in (parts[0] if parts else {}) if k != TIME_COLUMN]
-    joined = {
-        k: np.concatenate([p[k] for p in parts]) if parts else np.empty(0) for k in [TIME_COLUMN, *names]
-    }
-    return {
-        "estimator": estimator,
-        "t_s": joined[TIME_COLUMN].tolist(),
-        "series": {k: _as_list(joined[k]) for k in names},
-        "truncated": truncated,
-    }
+        for n in pa.ipc.open_stream(pa.py_buffer(row.payload)).schema.names:
+            names.setdefault(n, None)
+    outs = [n for n in names if n != TIME_COLUMN]
+    schema = series.schema_of([TIME_COLUMN, *outs, "seq", *LABELS], int_columns=("seq", *LABELS))
+
+    def blocks() -> Iterator[dict[str, np.ndarray]]:
+        for row in repository.sample_outputs(session, act.id, estimator, from_s, to_s):
+            cols = series.clip(decode_columns(row.payload), from_s, to_s, None, "asc")
+            n = len(cols[TIME_COLUMN])
+            cols["seq"] = np.full(n, row.seq, dtype=np.int64)
+            for k in LABELS:
+                cols[k] = np.full(n, getattr(row, k), dtype=np.int64)
+            yield cols
+
+    return schema, blocks()
 
 
 def events(
-    session: Session, act: Actuator, from_s: float | None, to_s: float | None, limit: int
-) -> list[dict[str, Any]]:
-    return [event_public(r) for r in repository.events(session, act.id, from_s, to_s, limit)]
+    session: Session,
+    act: Actuator,
+    from_s: float | None,
+    to_s: float | None,
+    after: Sequence[Any] | None,
+    order: Order,
+    limit: int,
+) -> tuple[list[dict[str, Any]], list[Any] | None]:
+    rows = repository.events(session, act.id, from_s, to_s, after=after, order=order, limit=limit + 1)
+    items = [_labelled(event_public(r), r) for r in rows[:limit]]
+    return items, ([rows[limit - 1].t_s, rows[limit - 1].id] if len(rows) > limit else None)
+
+
+class _Usage:
+    """Counter values of an actuator's usage channels (operating hours, cycles) read from the
+    telemetry log for one request (each batch decoded once)."""
+
+    def __init__(self, session: Session, act: Actuator) -> None:
+        self.session = session
+        self.act = act
+        self.counters = [c for c in vocabulary.USAGE_COUNTERS if c in act.channels]
+        self._start: dict[tuple[int, str], tuple[float, float] | None] = {}
+
+    def _baseline_start(self, baseline: int, counter: str) -> tuple[float, float] | None:
+        key = (baseline, counter)
+        if key not in self._start:
+            first = fleet.baseline_start(self.session, self.act.id, baseline)
+            self._start[key] = readback.first_counter_point(self.session, self.act, first, counter)
+        return self._start[key]
+
+    def convert(self, r: Any, rul: dict[str, Any]) -> dict[str, Any]:
+        """``rul_operating_hours`` and ``rul_cycles`` of one prognosis (None without the
+        counter, or when its rate cannot be measured: raw batches dropped by retention, or a
+        counter that did not advance)."""
+        out: dict[str, Any] = dict.fromkeys(vocabulary.USAGE_COUNTERS.values())
+        for counter in self.counters:
+            now = readback.counter_point_at(self.session, self.act, r.seq, r.t_s, counter)
+            rate = vocabulary.usage_rate(self._baseline_start(r.baseline, counter), now)
+            out[vocabulary.USAGE_COUNTERS[counter]] = vocabulary.rul_in_usage(rul, rate)
+        return out
+
+
+def _rul_item(row: Any, usage: _Usage) -> dict[str, Any]:
+    pub = _labelled(rul_public(row), row)
+    return {
+        **pub,
+        **vocabulary.event_state(row.estimator, row.health, row.threshold),
+        **vocabulary.time_of_event(row.t_s, pub),
+        **usage.convert(row, pub),
+    }
 
 
 def rul(
@@ -113,20 +193,25 @@ def rul(
     estimator: str | None,
     from_s: float | None,
     to_s: float | None,
+    after: Sequence[Any] | None,
+    order: Order,
     limit: int,
-) -> dict[str, Any]:
-    _check_estimator(session, act, estimator)
-    names = [estimator] if estimator is not None else [er.estimator for er in repository.estimators(session, act.id)]
+) -> tuple[dict[str, Any], list[Any] | None]:
+    check_estimator(session, act, estimator)
+    ests = repository.estimators(session, act.id)
+    usage = _Usage(session, act)
     latest: dict[str, Any] = {}
-    for name in sorted(names):
-        last = repository.latest_rul(session, act.id, name)
+    for er in ests:
+        if estimator is not None and er.estimator != estimator:
+            continue
+        last = repository.latest_rul(session, act.id, er.estimator, er.baseline)
         if last is not None:
-            latest[name] = rul_public(last)
-    rows = repository.ruls(session, act.id, estimator, from_s, to_s, limit + 1)
-    return {
+            latest[er.estimator] = _rul_item(last, usage)
+    rows = repository.ruls(session, act.id, estimator, from_s, to_s, after=after, order=order, limit=limit + 1)
+    body = {
         "tail": tail,
         "actuator_id": act.actuator_id,
         "latest": latest,
-        "items": [rul_public(r) for r in rows[:limit]],
-        "truncated": len(rows) > limit,
+        "items": [_rul_item(r, usage) for r in rows[:limit]],
     }
+    return body, ([rows[limit - 1].t_s, rows[limit - 1].id] if len(rows) > limit else None)

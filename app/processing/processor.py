@@ -34,6 +34,7 @@ from sqlalchemy.orm import Session
 
 from app.config import Settings
 from app.db import Database
+from app.fleet import service as fleet
 from app.processing import repository, service
 from app.processing.orchestration import StateUnreadable
 from app.processing.service import ApplyResult
@@ -283,6 +284,8 @@ class Processor:
                     if self.settings.log_retention_s is not None:
                         with self.db.write() as s:
                             repository.drop_applied_payloads(s, self.settings.log_retention_s)
+                    with self.db.write() as s:
+                        fleet.purge_deleted(s, self.settings.deleted_retention_s)
                 except Exception:
                     log.exception("periodic scan failed")
                 next_scan = now + self.settings.processor_scan_interval_s

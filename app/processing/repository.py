@@ -77,36 +77,39 @@ def insert_rows(session: Session, rows: Rows) -> None:
             session.execute(insert(model), items)
 
 
-def delete_outputs(session: Session, actuator_pk: int, estimator: str) -> None:
-    """Forget everything one estimator of a stream produced (before it replays the stream)."""
+def delete_outputs(session: Session, actuator_pk: int, estimator: str, baseline: int | None = None) -> None:
+    """Forget everything one estimator of a stream produced (before it replays the stream), or
+    only what it produced in one baseline."""
     for model in OUTPUT_MODELS:
-        session.execute(
-            delete(model).where(model.actuator_pk == actuator_pk, model.estimator == estimator)
-        )
+        stmt = delete(model).where(model.actuator_pk == actuator_pk, model.estimator == estimator)
+        if baseline is not None:
+            stmt = stmt.where(model.baseline == baseline)
+        session.execute(stmt)
 
 
-def log_holds_from_first(session: Session, actuator_pk: int, upto_seq: int) -> bool:
-    """Whether the log still holds the payload of every batch 1..upto_seq (retention may have
-    dropped the oldest)."""
-    if upto_seq <= 0:
+def log_holds_from_first(session: Session, actuator_pk: int, upto_seq: int, first_seq: int = 1) -> bool:
+    """Whether the log still holds the payload of every batch first_seq..upto_seq (retention
+    may have dropped the oldest)."""
+    if upto_seq < first_seq:
         return True
     kept = session.scalar(
         select(func.count())
         .select_from(TelemetryBatch)
         .where(
             TelemetryBatch.actuator_pk == actuator_pk,
+            TelemetryBatch.seq >= first_seq,
             TelemetryBatch.seq <= upto_seq,
             TelemetryBatch.payload.is_not(None),
         )
     )
-    return int(kept or 0) == upto_seq
+    return int(kept or 0) == upto_seq - first_seq + 1
 
 
 def logged_batches(
-    session: Session, actuator_pk: int, upto_seq: int, chunk: int
+    session: Session, actuator_pk: int, upto_seq: int, chunk: int, first_seq: int = 1
 ) -> Iterator[list[TelemetryBatch]]:
-    """Batches 1..upto_seq in stream order, ``chunk`` at a time (memory stays bounded)."""
-    after = 0
+    """Batches first_seq..upto_seq in stream order, ``chunk`` at a time (memory stays bounded)."""
+    after = first_seq - 1
     while after < upto_seq:
         part = list(
             session.scalars(

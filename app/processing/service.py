@@ -17,6 +17,7 @@ from app.fleet import service as fleet
 from app.ingest import TIME_COLUMN
 from app.models import (
     EstimatorEventRow,
+    EstimatorState,
     HealthWindowRow,
     RulEstimateRow,
     SampleOutputRow,
@@ -35,6 +36,7 @@ from app.processing.messages import (
 )
 from app.processing.orchestration import (
     LoggedBatch,
+    Rows,
     fresh_runner,
     make_runner,
     most_urgent_rul,
@@ -75,6 +77,35 @@ def decode(row: TelemetryBatch) -> LoggedBatch:
     )
 
 
+def _label(rows: Rows, est_rows: Sequence[EstimatorState]) -> None:
+    """Stamp every output row with the config version and baseline of its estimator."""
+    labels = {er.estimator: (er.config_version, er.baseline) for er in est_rows}
+    for items in (rows.health, rows.outputs, rows.events, rows.rul):
+        for r in items:
+            r["config_version"], r["baseline"] = labels[r["estimator"]]
+
+
+def _at_baseline_boundary(
+    stream: Stream, est_rows: Sequence[EstimatorState], pending: list[TelemetryBatch]
+) -> list[TelemetryBatch]:
+    """The batches of one baseline: a maintenance action recorded while batches were pending
+    restarts the estimators at ``reset_at_seq``. Batches before it are applied first (to the
+    old baseline); at it, the estimators start the new baseline."""
+    boundary = min(
+        (er.reset_at_seq for er in est_rows if er.reset_at_seq is not None and er.reset_at_seq > stream.last_applied_seq),
+        default=None,
+    )
+    if boundary is None:
+        return pending
+    if pending[0].seq < boundary:
+        return [b for b in pending if b.seq < boundary]
+    for er in est_rows:
+        if er.reset_at_seq == boundary and er.reset_baseline is not None:
+            fleet.start_baseline(er, er.reset_baseline)
+    stream.rul_t_s = stream.rul_q05_s = stream.rul_q50_s = None
+    return pending
+
+
 def _set_rul(stream: Stream, rul_rows: Sequence[dict[str, object]]) -> None:
     best = most_urgent_rul(rul_rows)
     if best is not None:
@@ -109,6 +140,7 @@ def apply_pending(
     if not pending:
         return None
     est_rows = repository.estimators(session, actuator_pk)
+    pending = _at_baseline_boundary(stream, est_rows, pending)
     runners = [
         make_runner(er.estimator, er.config, er.state, er.status, er.reasons, er.diagnosis_t_s, er.diagnosis)
         for er in est_rows
@@ -116,6 +148,7 @@ def apply_pending(
     step = run_estimators(actuator_pk, runners, [decode(b) for b in pending], store_outputs=store_outputs)
 
     now = utcnow()
+    _label(step.rows, est_rows)
     repository.insert_rows(session, step.rows)
     for row in pending:
         row.applied_at = now
@@ -165,15 +198,18 @@ def replay_estimator(
     if stream is None:
         return Replay.BUSY
     upto = stream.last_applied_seq
-    if not repository.log_holds_from_first(session, actuator_pk, upto):
-        return Replay.LOG_INCOMPLETE
     est_rows = repository.estimators(session, actuator_pk)
     er = next(r for r in est_rows if r.estimator == estimator)
-    repository.delete_outputs(session, actuator_pk, estimator)
+    # Only the current baseline (since the last repair or replacement) is replayed.
+    first = fleet.baseline_start(session, actuator_pk, er.baseline)
+    if not repository.log_holds_from_first(session, actuator_pk, upto, first_seq=first):
+        return Replay.LOG_INCOMPLETE
+    repository.delete_outputs(session, actuator_pk, estimator, baseline=er.baseline)
     runner = fresh_runner(estimator, er.config)
     rul_rows: list[dict[str, object]] = []
-    for part in repository.logged_batches(session, actuator_pk, upto, MAX_BATCHES_PER_QUERY):
+    for part in repository.logged_batches(session, actuator_pk, upto, MAX_BATCHES_PER_QUERY, first_seq=first):
         step = run_estimators(actuator_pk, [runner], [decode(b) for b in part], store_outputs=store_outputs)
+        _label(step.rows, [er])
         repository.insert_rows(session, step.rows)
         rul_rows.extend(step.rows.rul)
         runner = step.runners[0]

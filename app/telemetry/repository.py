@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
@@ -32,3 +34,47 @@ def actuator_for_update(session: Session, actuator_pk: int) -> Actuator | None:
     """The actuator row, locked for this transaction (SQLite: ``BEGIN IMMEDIATE`` serializes
     writers already and ignores the clause)."""
     return session.get(Actuator, actuator_pk, with_for_update=True)
+
+
+# ----------------------------------------------------------------------------- read-back
+def logged_blocks(
+    session: Session,
+    actuator_pk: int,
+    from_s: float | None,
+    to_s: float | None,
+    *,
+    order: str = "asc",
+) -> Iterator[TelemetryBatch]:
+    """Logged batches that meet [from_s, to_s], in stream order (or its reverse), read a few at
+    a time; each row is let go once the caller moves on, so memory holds a handful of payloads."""
+    stmt = select(TelemetryBatch).where(TelemetryBatch.actuator_pk == actuator_pk)
+    if from_s is not None:
+        stmt = stmt.where(TelemetryBatch.t_last_s >= from_s)
+    if to_s is not None:
+        stmt = stmt.where(TelemetryBatch.t_first_s <= to_s)
+    col = TelemetryBatch.seq
+    stmt = stmt.order_by(col.asc() if order == "asc" else col.desc()).execution_options(yield_per=16)
+    for row in session.scalars(stmt):
+        yield row
+        session.expunge(row)
+
+
+def batch_at(session: Session, actuator_pk: int, seq: int) -> TelemetryBatch | None:
+    return session.scalar(
+        select(TelemetryBatch).where(TelemetryBatch.actuator_pk == actuator_pk, TelemetryBatch.seq == seq)
+    )
+
+
+def first_kept_batch(session: Session, actuator_pk: int, from_seq: int, upto_seq: int) -> TelemetryBatch | None:
+    """The first batch in from_seq..upto_seq whose payload the log still holds."""
+    return session.scalar(
+        select(TelemetryBatch)
+        .where(
+            TelemetryBatch.actuator_pk == actuator_pk,
+            TelemetryBatch.seq >= from_seq,
+            TelemetryBatch.seq <= upto_seq,
+            TelemetryBatch.payload.is_not(None),
+        )
+        .order_by(TelemetryBatch.seq)
+        .limit(1)
+    )

@@ -2,17 +2,29 @@
 
 from __future__ import annotations
 
+from contextlib import ExitStack
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Header, Query, Request
-from fastapi.responses import Response
+from fastapi.responses import Response, StreamingResponse
 from prometheus_client import Counter
 from starlette.concurrency import run_in_threadpool
 
-from app.deps import DbDep, IngestDep, ProcessorDep, SettingsDep
+from app import series
+from app.deps import (
+    ActuatorDep,
+    DbDep,
+    IngestDep,
+    ProcessorDep,
+    ReadDep,
+    ReadSessionDep,
+    SettingsDep,
+)
 from app.errors import DomainError, PayloadTooLarge, StreamFailed, error_responses, json_response
+from app.fleet import service as fleet
 from app.ingest import TimeParams, media_type
-from app.telemetry import service
+from app.pagination import CursorQuery, OrderQuery, decode_cursor, encode_cursor
+from app.telemetry import readback, schemas, service
 from app.telemetry.validation import BatchLimits
 
 router = APIRouter(prefix="/v1", tags=["telemetry"])
@@ -139,3 +151,52 @@ async def post_telemetry(
             )
     headers = {"Idempotent-Replayed": "true"} if ack.replayed else None
     return json_response(ack.body(), status_code=202, headers=headers)
+
+
+# ----------------------------------------------------------------------------- read-back
+TEL = "/aircraft/{tail}/actuators/{actuator_id}/telemetry"
+READ_ERRORS = error_responses(400, 401, 403, 404, 410, 422)
+StreamTime = Annotated[float | None, Query(description="Stream time, seconds")]
+
+
+@router.get(f"{TEL}", response_model=schemas.TelemetryPage, responses=READ_ERRORS)
+def read_telemetry(
+    act: ActuatorDep,
+    s: ReadSessionDep,
+    from_s: StreamTime = None,
+    to_s: StreamTime = None,
+    max_samples: Annotated[int, Query(ge=1, le=1_000_000, description="Samples per page")] = 100_000,
+    cursor: CursorQuery = None,
+    order: OrderQuery = "desc",
+) -> schemas.TelemetryPage:
+    """Raw samples as logged, in [from_s, to_s], newest first (`order=asc`: oldest first),
+    `max_samples` per page; `next_cursor` gives the next page. A missing sample is null;
+    batches whose samples retention dropped are listed in `dropped`. For whole series use
+    `.../telemetry/export`."""
+    key = decode_cursor(cursor, "telemetry", order, 1)
+    body, last = readback.read(s, act, from_s, to_s, None if key is None else float(key[0]), order, max_samples)
+    return schemas.TelemetryPage.model_validate(
+        {**body, "next_cursor": encode_cursor("telemetry", order, [last]) if last is not None else None}
+    )
+
+
+@router.get(f"{TEL}/export", response_class=StreamingResponse, responses={**series.EXPORT_RESPONSES, **READ_ERRORS})
+def export_telemetry(
+    tail: str,
+    actuator_id: str,
+    db: DbDep,
+    p: ReadDep,
+    from_s: StreamTime = None,
+    to_s: StreamTime = None,
+    format: Annotated[series.ExportFormat, Query(description="arrow (IPC stream), csv or parquet")] = "arrow",
+) -> StreamingResponse:
+    """Raw telemetry in [from_s, to_s], oldest first, as one file streamed batch by batch:
+    column `t` (seconds) and the actuator's channels, a missing sample null: the same columns
+    an Arrow upload carries."""
+    with ExitStack() as stack:
+        # The read transaction outlives this function: the body is written after it returns.
+        s = stack.enter_context(db.read())
+        act = fleet.get_actuator(s, p.operator_id, tail, actuator_id)
+        schema, blocks = readback.export_blocks(s, act, from_s, to_s)
+        return series.export_response(stack.pop_all(), series.export(blocks, schema, format), format,
+                                      f"{tail}_{actuator_id}_telemetry")

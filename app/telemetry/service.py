@@ -156,6 +156,7 @@ def ingest_frame(
     check_batch(parsed, limits)
     with db.write() as s:
         act = repository.actuator_for_update(s, actuator_pk)
-        if act is None:
-            raise StaleBatch("the actuator was deleted")
+        if act is None or act.deleted_at is not None:
+            # Refused like a stale frame (the WebSocket closes with a policy code and this detail).
+            raise StaleBatch("the actuator was deleted; its stream takes no more frames")
         return client_seq, log_batch(s, act, parsed)

@@ -70,12 +70,12 @@ class Api:
         )
 
     def history(self, tail: str = "N1", act: str = "ema1") -> list[dict[str, Any]]:
-        r = self.get(f"/v1/aircraft/{tail}/actuators/{act}/health/history")
+        r = self.get(f"/v1/aircraft/{tail}/actuators/{act}/health/history?order=asc")
         assert r.status_code == 200, r.text
         return r.json()["items"]  # type: ignore[no-any-return]
 
     def outputs(self, tail: str = "N1", act: str = "ema1") -> dict[str, Any]:
-        r = self.get(f"/v1/aircraft/{tail}/actuators/{act}/outputs?estimator=fakf&max_samples=1000000")
+        r = self.get(f"/v1/aircraft/{tail}/actuators/{act}/outputs?estimator=fakf&max_samples=1000000&order=asc")
         assert r.status_code == 200, r.text
         return r.json()  # type: ignore[no-any-return]
 

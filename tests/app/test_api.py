@@ -65,8 +65,8 @@ def test_other_operator_sees_nothing(api: Api, db_url: str) -> None:
         r = other.get(path)
         assert r.status_code == 404 and r.json()["error"] == "NotFound", path
     assert other.send_json("N1", "ema1", "x", s.t_s, {"current": s.current, "voltage": s.voltage}).status_code == 404
-    assert other.get("/v1/aircraft").json() == {"items": []}
-    assert other.get("/v1/fleet/health").json() == {"aircraft": []}
+    assert other.get("/v1/aircraft").json() == {"items": [], "next_cursor": None}
+    assert other.get("/v1/fleet/health").json() == {"aircraft": [], "next_cursor": None}
     # The other operator may use the same tail for its own aircraft.
     assert other.post("/v1/aircraft", json={"tail": "N1"}).status_code == 201
     assert api.health()["last_logged_seq"] == 0

@@ -35,7 +35,7 @@ def test_rul_is_stored_with_history_and_orders_the_fleet_board(api: Any) -> None
             sl = slice(k * 5000, (k + 1) * 5000)
             _post(api, "FD1", act, f"b{k}", t[sl], {c: v[sl] for c, v in chans.items()})
 
-    rul = {act: api.get(f"/v1/aircraft/FD1/actuators/{act}/rul").json() for act in runs}
+    rul = {act: api.get(f"/v1/aircraft/FD1/actuators/{act}/rul?order=asc").json() for act in runs}
     for act, body in rul.items():
         items = body["items"]
         # One prognosis per 5 s of stream time, stored with history.
@@ -56,7 +56,7 @@ def test_rul_is_stored_with_history_and_orders_the_fleet_board(api: Any) -> None
     fd1 = next(a for a in board if a["tail"] == "FD1")
     assert [a["actuator_id"] for a in fd1["actuators"]] == ["fast", "slow"]
     assert fd1["actuators"][0]["rul_q05_s"] == rul["fast"]["latest"]["deterioration_ekf"]["q05_s"]
-    window = api.get("/v1/aircraft/FD1/actuators/fast/rul?from_s=9&to_s=16").json()
+    window = api.get("/v1/aircraft/FD1/actuators/fast/rul?from_s=9&to_s=16&order=asc").json()
     assert [round(i["t_s"]) for i in window["items"]] == [10, 15]
 
 

@@ -136,7 +136,7 @@ class _Core:
         limit: int | None,
     ) -> _Request:
         params = _drop_none(
-            {"estimator": estimator, "from_s": from_s, "to_s": to_s, "limit": limit}
+            {"estimator": estimator, "from_s": from_s, "to_s": to_s, "limit": limit, "order": "asc"}
         )
         return _Request("GET", f"{actuator_path(tail, actuator_id)}/health/history", params=params)
 
@@ -144,14 +144,14 @@ class _Core:
     def outputs(
         tail: str, actuator_id: str, estimator: str, from_s: float | None, to_s: float | None
     ) -> _Request:
-        params = _drop_none({"estimator": estimator, "from_s": from_s, "to_s": to_s})
+        params = _drop_none({"estimator": estimator, "from_s": from_s, "to_s": to_s, "order": "asc"})
         return _Request("GET", f"{actuator_path(tail, actuator_id)}/outputs", params=params)
 
     @staticmethod
     def rul(
         tail: str, actuator_id: str, estimator: str | None, from_s: float | None, to_s: float | None
     ) -> _Request:
-        params = _drop_none({"estimator": estimator, "from_s": from_s, "to_s": to_s})
+        params = _drop_none({"estimator": estimator, "from_s": from_s, "to_s": to_s, "order": "asc"})
         return _Request("GET", f"{actuator_path(tail, actuator_id)}/rul", params=params)
 
     @staticmethod
