@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 import orjson
+import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
@@ -280,3 +281,42 @@ def test_a_replacement_with_batches_pending_applies_them_to_the_old_baseline(api
     assert out["t_s"][k:] == fresh_out["t_s"]
     assert out["series"].keys() == fresh_out["series"].keys()
     assert all(v[k:] == fresh_out["series"][n] for n, v in out["series"].items())
+
+
+def test_a_state_replay_after_a_replacement_recomputes_only_the_new_baseline(
+    api: Api, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from estimators import fakf
+
+    n = 500
+    s = make_series(4 * n, seed=23)
+
+    def send(act: str, k: int) -> None:
+        sl = slice(n * k, n * (k + 1))
+        r = api.send_arrow("N1", act, f"b{k}", s.t_s[sl], {"current": s.current[sl], "voltage": s.voltage[sl]})
+        assert r.status_code == 202, r.text
+        wait_applied(api, f"/v1/aircraft/N1/actuators/{act}", r.json()["seq"])
+
+    api.setup_actuator("N1", "up")
+    send("up", 0)
+    send("up", 1)
+    before = api.history("N1", "up")
+    assert api.post("/v1/aircraft/N1/actuators/up/maintenance",
+                    json={"action": "replacement", "performed_by": "MRO"}).json()["from_seq"] == 3
+    send("up", 2)
+    # An upgrade makes the stored state unreadable: the processor replays the new baseline.
+    monkeypatch.setattr(fakf, "STATE_VERSION", fakf.STATE_VERSION + 1)
+    send("up", 3)
+    h = api.health("N1", "up")
+    assert h["failure"] is None and h["last_applied_seq"] == 4
+    hist = api.history("N1", "up")
+    assert [w for w in hist if w["baseline"] == 1] == before  # the old part's history is untouched
+    api.setup_actuator("N1", "fresh")
+    for k in (2, 3):
+        send("fresh", k)
+    new = [w for w in hist if w["baseline"] == 2]
+    fresh = api.history("N1", "fresh")
+    assert len(new) == len(fresh) == 4
+    for a, b in zip(new, fresh, strict=True):
+        assert (a["t_start_s"], a["t_end_s"], a["status"]) == (b["t_start_s"], b["t_end_s"], b["status"])
+        assert a["indicators"] == pytest.approx(b["indicators"], rel=1e-12, abs=1e-12)
