@@ -57,6 +57,12 @@ class Gone(DomainError):
     status_code = 410
 
 
+class MaintenancePending(DomainError):
+    """A repair or replacement is recorded but the batches before it are not applied yet."""
+
+    status_code = 409
+
+
 class InvalidCursor(DomainError):
     """A pagination cursor that this endpoint did not issue, or for another order."""
 

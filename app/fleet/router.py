@@ -202,7 +202,7 @@ def list_config_versions(
     f"{ACT}/maintenance",
     status_code=201,
     response_model=schemas.MaintenancePublic,
-    responses=error_responses(401, 403, 404, 410, 422),
+    responses=error_responses(401, 403, 404, 409, 410, 422),
 )
 def record_maintenance(
     tail: str, actuator_id: str, body: schemas.MaintenanceCreate, s: WriteSessionDep, p: AdminDep
@@ -212,8 +212,9 @@ def record_maintenance(
     A `repair` or `replacement` starts a new baseline with the next batch logged (`from_seq`):
     the estimators restart from their initial state, so RUL starts again and a `failed` status
     of the old part is cleared; outputs before and after carry their baseline number. Batches
-    of the old part logged but not yet applied are applied to the old baseline first. An
-    `inspection` changes nothing but the record.
+    of the old part logged but not yet applied are applied to the old baseline first (a second
+    repair or replacement meanwhile answers 409 `MaintenancePending`). An `inspection` changes
+    nothing but the record.
     """
     row = service.record_maintenance(
         s,

@@ -11,7 +11,7 @@ from typing import Any, Literal
 import numpy as np
 from sqlalchemy.orm import Session
 
-from app.errors import AlreadyExists, Gone, InvalidConfig, NotFound
+from app.errors import AlreadyExists, Gone, InvalidConfig, MaintenancePending, NotFound
 from app.faults import service as faults
 from app.fleet import repository
 from app.fleet.repository import BoardRow
@@ -322,6 +322,14 @@ def record_maintenance(
     baseline = max(current, repository.last_baseline(session, act.id))
     from_seq: int | None = None
     if action in RESETTING_ACTIONS:
+        pending = [er.reset_at_seq for er in ests if er.reset_at_seq is not None]
+        if pending:
+            # One restart can wait at a time: a second one would drop the first's baseline.
+            raise MaintenancePending(
+                f"the repair or replacement starting baseline {current} at batch {pending[0]} is not "
+                f"applied yet (the processor is at batch {stream.last_applied_seq}); record this one "
+                "once it is"
+            )
         baseline += 1
         from_seq = act.last_logged_seq + 1
         if stream.last_applied_seq >= act.last_logged_seq:

@@ -102,6 +102,9 @@ class RulEstimatePublic(BaseModel):
     )
     event_state_lower: float | None = Field(default=None, description="Lower bound of event_state")
     event_state_upper: float | None = Field(default=None, description="Upper bound of event_state")
+    threshold_met: bool | None = Field(
+        default=None, description="The health quantity has reached the failure threshold (progpy's threshold_met)"
+    )
     time_basis: Literal["epoch", "stream"] = Field(
         default="stream",
         description="`epoch`: stream times are epoch seconds, so time_of_event is absolute UTC; "

@@ -1,7 +1,7 @@
 """Prognostics' usual words alongside the RUL in stream seconds (progpy's vocabulary).
 
 * ``event_state``: normalized health in [0, 1], 1 for a new part and 0 when the failure
-  threshold is met (progpy's ``event_state``). For an estimator whose health quantity is a
+  threshold is met (progpy's ``event_state``; ``threshold_met`` says whether it is). For an estimator whose health quantity is a
   normalized deterioration rising from 0 (new) to the failure threshold, it is
   ``1 - health / threshold``, clipped to [0, 1]; its bounds come from the quantity's bounds.
 * ``time_of_event``: when the threshold is met (progpy's ``time_of_event``), the prognosis
@@ -45,14 +45,16 @@ def _event_state(health: float | None, threshold: float) -> float | None:
     return min(1.0, max(0.0, 1.0 - health / threshold))
 
 
-def event_state(estimator: str, health: Mapping[str, Any], threshold: float) -> dict[str, float | None]:
+def event_state(estimator: str, health: Mapping[str, Any], threshold: float) -> dict[str, Any]:
     """``event_state`` with its bounds (``event_state_lower`` from the deterioration's upper
-    bound); all None for an estimator without a normalized health quantity."""
+    bound) and ``threshold_met`` (progpy's: the health quantity has reached the threshold); all
+    None for an estimator without a normalized health quantity."""
     keys = HEALTH_QUANTITY.get(estimator)
     if keys is None:
-        return {"event_state": None, "event_state_lower": None, "event_state_upper": None}
+        return {"event_state": None, "event_state_lower": None, "event_state_upper": None, "threshold_met": None}
     mid, lo, hi = (health.get(k) for k in keys)
     return {
+        "threshold_met": None if mid is None or not math.isfinite(mid) else bool(mid >= threshold),
         "event_state": _event_state(mid, threshold),
         "event_state_lower": _event_state(hi, threshold),
         "event_state_upper": _event_state(lo, threshold),

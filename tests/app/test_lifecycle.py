@@ -194,6 +194,7 @@ def test_replacement_starts_a_new_baseline_and_rul_again(api: Api) -> None:
     assert api.get(f"{D}/health").json()["status"] == "failed"
     old_latest = api.get(f"{D}/rul").json()["latest"]["deterioration_ekf"]
     assert old_latest["q50_s"] == 0.0 and old_latest["baseline"] == 1
+    assert old_latest["threshold_met"] is True and old_latest["event_state"] == 0.0
 
     r = api.post(f"{D}/maintenance", json={"action": "inspection", "performed_by": "J. Doe", "comment": "worn"})
     assert r.status_code == 201 and r.json()["baseline"] == 1 and r.json()["from_seq"] is None
@@ -218,6 +219,7 @@ def test_replacement_starts_a_new_baseline_and_rul_again(api: Api) -> None:
     body = api.get(f"{D}/rul?order=asc").json()
     new_latest = body["latest"]["deterioration_ekf"]
     assert new_latest["baseline"] == 2 and new_latest["q50_s"] > 5.0
+    assert new_latest["threshold_met"] is False and new_latest["event_state"] > 0.5
     assert api.get(f"{D}/health").json()["status"] != "failed"
     # History before and after is kept, each labelled with its baseline.
     labels = [(round(i["t_s"]), i["baseline"]) for i in body["items"]]
@@ -257,6 +259,10 @@ def test_a_replacement_with_batches_pending_applies_them_to_the_old_baseline(api
     send("ema1", "b2", 1000, 1500)
     r = api.post(f"{A}/maintenance", json={"action": "replacement", "performed_by": "MRO"})
     assert r.status_code == 201 and r.json()["from_seq"] == 3
+    # A second restart cannot wait behind the first (it would drop the first's baseline).
+    r = api.post(f"{A}/maintenance", json={"action": "repair", "performed_by": "MRO"})
+    assert r.status_code == 409 and r.json()["error"] == "MaintenancePending", r.text
+    assert api.post(f"{A}/maintenance", json={"action": "inspection", "performed_by": "MRO"}).status_code == 201
     send("ema1", "b3", 1500, 2200)
     send("ema1", "b4", 2200, 3000)
     # The same samples of the new part, fed to a new actuator from its start.

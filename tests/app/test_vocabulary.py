@@ -19,8 +19,9 @@ def test_event_state_is_normalized_health() -> None:
     assert es["event_state"] == pytest.approx(0.5)
     assert es["event_state_lower"] == pytest.approx(1 - 0.5 / 0.9)
     assert es["event_state_upper"] == pytest.approx(1 - 0.4 / 0.9)
+    assert es["threshold_met"] is False
     assert vocabulary.event_state("deterioration_ekf", {"dn": 1.2, "dn_lower": None, "dn_upper": None}, 0.9) == {
-        "event_state": 0.0, "event_state_lower": None, "event_state_upper": None}
+        "event_state": 0.0, "event_state_lower": None, "event_state_upper": None, "threshold_met": True}
     assert vocabulary.event_state("deterioration_ekf", {"dn": -0.1}, 0.9)["event_state"] == 1.0
     assert vocabulary.event_state("fakf", {"x": 1.0}, 1.0)["event_state"] is None
 
@@ -79,6 +80,7 @@ def test_rul_on_an_epoch_clock_with_an_hours_counter(api: Api) -> None:
         assert datetime.fromisoformat(it["time_of_event"]) == datetime.fromtimestamp(it["t_s"] + q50, UTC)
         assert it["event_state"] == pytest.approx(1 - it["health"]["dn"] / it["threshold"])
         assert it["event_state_lower"] <= it["event_state"] <= it["event_state_upper"]
+        assert it["threshold_met"] is (it["health"]["dn"] >= it["threshold"])
         # Hours: RUL seconds x the meter's rate (0.5 h per 3600 s); cycles: 1 per 2 s (the
         # counter's rate is measured from its first sample to its last one before t_s).
         assert it["rul_operating_hours"]["q50"] == pytest.approx(q50 * 0.5 / 3600.0, rel=1e-9)
