@@ -20,6 +20,9 @@ from app.models import Actuator
 from app.pagination import Order
 from app.telemetry import repository
 
+#: At most this many dropped batches are named per page.
+MAX_DROPPED_LISTED = 1000
+
 
 def _blocks(
     session: Session, act: Actuator, from_s: float | None, to_s: float | None, order: Order,
@@ -27,7 +30,7 @@ def _blocks(
 ) -> Iterator[dict[str, np.ndarray]]:
     for row in repository.logged_blocks(session, act.id, from_s, to_s, order=order):
         if row.payload is None:
-            if dropped is not None:
+            if dropped is not None and len(dropped) < MAX_DROPPED_LISTED:
                 dropped.append({"seq": row.seq, "t_first_s": row.t_first_s, "t_last_s": row.t_last_s})
             continue
         cols = decode_columns(row.payload)
@@ -45,7 +48,8 @@ def read(
 ) -> tuple[dict[str, Any], float | None]:
     """A page of raw samples (the channels as logged; a missing sample is None) and the time to
     continue after (None on the last page). Batches whose samples retention has dropped
-    (``FLEETHEALTH_LOG_RETENTION_S``) are listed in ``dropped`` instead."""
+    (``FLEETHEALTH_LOG_RETENTION_S``) are listed in ``dropped`` instead (the first
+    :data:`MAX_DROPPED_LISTED` met)."""
     dropped: list[dict[str, Any]] = []
     cols, last = series.page(_blocks(session, act, from_s, to_s, order, dropped), from_s, to_s, after_t, order, max_samples)
     t = cols.pop(TIME_COLUMN)

@@ -18,6 +18,7 @@ class TelemetryPage(BaseModel):
     channels: dict[str, list[float | None]] = Field(description="Channel -> values; null = no sample")
     dropped: list[DroppedBatch] = Field(
         default_factory=list,
-        description="Batches in the range whose samples retention dropped (FLEETHEALTH_LOG_RETENTION_S)",
+        description="Batches met by this page whose samples retention dropped (FLEETHEALTH_LOG_RETENTION_S), "
+        "at most 1000",
     )
     next_cursor: str | None = Field(default=None, description=CURSOR_DOC)
