@@ -34,8 +34,8 @@ def _feed(server: LiveServer, act: str, batches: range, series, wait_s: float = 
 
 def _results(server: LiveServer, act: str) -> tuple[list, dict]:  # type: ignore[type-arg]
     base = f"{server.url}/v1/aircraft/E2E/actuators/{act}"
-    hist = httpx.get(f"{base}/health/history", headers=server.headers, timeout=30).json()["items"]
-    out = httpx.get(f"{base}/outputs?estimator=fakf&max_samples=1000000", headers=server.headers, timeout=30).json()
+    hist = httpx.get(f"{base}/health/history?order=asc", headers=server.headers, timeout=30).json()["items"]
+    out = httpx.get(f"{base}/outputs?estimator=fakf&max_samples=1000000&order=asc", headers=server.headers, timeout=30).json()
     return hist, out
 
 

@@ -44,7 +44,7 @@ def _setup(server: LiveServer, *actuators: str, tail: str = TAIL) -> None:
 
 def _outputs(server: LiveServer, act: str, tail: str = TAIL) -> dict[str, Any]:
     r = httpx.get(
-        f"{server.url}/v1/aircraft/{tail}/actuators/{act}/outputs?estimator=fakf&max_samples=1000000",
+        f"{server.url}/v1/aircraft/{tail}/actuators/{act}/outputs?estimator=fakf&max_samples=1000000&order=asc",
         headers=server.headers,
         timeout=30,
     )
