@@ -23,6 +23,7 @@ from urllib.parse import urlsplit
 import orjson
 from sqlalchemy.orm import Session
 
+from app.auth.service import get_or_create_operator
 from app.errors import DomainError, InvalidConfig, NotFound
 from app.models import WebhookAttempt, WebhookDelivery, WebhookSubscription, utcnow
 from app.webhooks import repository
@@ -105,7 +106,7 @@ def _operator(session: Session, operator: str) -> int:
 def allow_target(session: Session, operator: str, prefix: str) -> str:
     """Register a URL prefix the operator's webhooks may deliver to; returns it normalized."""
     norm = str(parse_target(prefix, prefix=True))
-    repository.add_target(session, _operator(session, operator), norm)
+    repository.add_target(session, get_or_create_operator(session, operator).id, norm)
     return norm
 
 
