@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from datetime import datetime
+from datetime import UTC, datetime
 from typing import Any
 
 import orjson
@@ -48,7 +48,7 @@ def public(
     return {
         "id": event_id,
         "type": event.type,
-        "time": created_at,
+        "time": created_at.astimezone(UTC).isoformat().replace("+00:00", "Z"),
         "tail": event.tail,
         "actuator_id": event.actuator_id,
         "seq": event.seq,
@@ -73,7 +73,10 @@ def store(
     :func:`reserve`) and queue their webhook deliveries; returns them as published."""
     now = utcnow()
     # JSON-safe bodies (times as RFC 3339 strings), stored and published alike.
-    events = [replace(ev, body=orjson.loads(orjson.dumps(ev.body))) for ev in events]
+    events = [
+        replace(ev, body=orjson.loads(orjson.dumps(ev.body, option=orjson.OPT_UTC_Z)))
+        for ev in events
+    ]
     rows = [
         {
             "operator_id": operator_id,

@@ -194,7 +194,9 @@ def delete_subscription(session: Session, operator_id: int, sub_id: int) -> None
 
 # ----------------------------------------------------------------------------- outbox
 def _body(sub_id: int, event: dict[str, Any]) -> str:
-    return orjson.dumps({"subscription_id": sub_id, "event": event}).decode()
+    return orjson.dumps(
+        {"subscription_id": sub_id, "event": event}, option=orjson.OPT_UTC_Z
+    ).decode()
 
 
 def _matches(sub: WebhookSubscription, event: dict[str, Any]) -> bool:
