@@ -25,10 +25,10 @@ ROUTING_KEYS = frozenset({"_operator_id", "type", "tail", "actuator_id", "seq", 
 def record_apply(session: Session, result: ApplyResult) -> list[dict[str, Any]]:
     """Log the fleet events of one apply, and the alarms they raise or clear, inside the
     apply's transaction (called by ``processing.service.apply_pending`` before it returns)."""
-    if not result.applied:
+    # Most applies produce no fleet event: find out before reading the stream's owner.
+    if not any(ev["type"] in LOGGED_TYPES for ev in fleet_events(StreamMeta(0, "", ""), result)):
         return []
     operator_id, tail, actuator_id = repository.stream_owner(session, result.actuator_pk)
-    meta = StreamMeta(operator_id, tail, actuator_id)
     events = [
         NewEvent(
             type=ev["type"],
@@ -39,7 +39,7 @@ def record_apply(session: Session, result: ApplyResult) -> list[dict[str, Any]]:
             t_s=ev.get("t_s"),
             body={k: v for k, v in ev.items() if k not in ROUTING_KEYS},
         )
-        for ev in fleet_events(meta, result)
+        for ev in fleet_events(StreamMeta(operator_id, tail, actuator_id), result)
         if ev["type"] in LOGGED_TYPES
     ]
     return alarms.log_with_alarms(

@@ -7,6 +7,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+import pytest
 
 from app.auth.service import create_key
 from tests.app.conftest import Api
@@ -137,3 +138,33 @@ def test_an_alarm_clears_itself_when_its_cause_ends(api: Api) -> None:
     assert (alarm["status"], alarm["severity"], alarm["cleared_by"]) == ("cleared", "major", "rule")
     assert alarm["raised_event_id"] == log[1]["id"] and alarm["cleared_event_id"] == log[4]["id"]
     assert alarm["clear_comment"] == "status back to ok"
+
+
+def test_events_commit_with_the_apply_or_not_at_all(api_noproc: Api, monkeypatch: Any) -> None:
+    from app.alarms import service as alarms_service
+    from app.fleet import service as fleet
+    from app.processing import service as processing
+
+    api = api_noproc
+    api.setup_actuator("N1", "ema1")
+    t, ch = _flat()
+    assert api.send_json("N1", "ema1", "b1", t, ch, wait=0).status_code == 202
+    db = api.app.state.db  # type: ignore[attr-defined]
+
+    def apply() -> Any:
+        with db.write() as s:
+            pk = fleet.get_actuator(s, 1, "N1", "ema1").id
+            return processing.apply_pending(s, pk, max_samples=10**6, store_outputs=True, is_sqlite=db.is_sqlite)
+
+    def broken(*args: Any, **kwargs: Any) -> Any:
+        raise RuntimeError("the alarm step failed")
+
+    with monkeypatch.context() as m:
+        m.setattr(alarms_service, "log_with_alarms", broken)
+        with pytest.raises(RuntimeError, match="alarm step"):
+            apply()
+    assert api.health()["last_applied_seq"] == 0  # the apply rolled back with its events
+    assert _events(api)["items"] == []
+    assert apply() is not None
+    assert api.health()["last_applied_seq"] == 1
+    assert [e["type"] for e in _events(api)["items"]] == ["status_changed", "alarm_raised"]
