@@ -40,10 +40,12 @@ class Received:
 
 
 class Receiver:
-    """Answers ``fail_first`` requests with 503 (or every one while ``down``), then 200."""
+    """Answers ``fail_first`` requests with 503 (or every one while ``down``), then 200, each
+    after ``delay_s``."""
 
-    def __init__(self, fail_first: int = 0) -> None:
+    def __init__(self, fail_first: int = 0, delay_s: float = 0.0) -> None:
         self.fail_first = fail_first
+        self.delay_s = delay_s
         self.down = False
         self.received: list[Received] = []
         self._lock = threading.Lock()
@@ -52,6 +54,8 @@ class Receiver:
         class Handler(BaseHTTPRequestHandler):
             def do_POST(self) -> None:  # noqa: N802 (the stdlib's name)
                 body = self.rfile.read(int(self.headers.get("content-length", "0")))
+                if outer.delay_s:
+                    time.sleep(outer.delay_s)
                 with outer._lock:
                     failing = outer.down or len(outer.received) < outer.fail_first
                     status = 503 if failing else 200

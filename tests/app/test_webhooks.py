@@ -156,3 +156,43 @@ def test_url_matching_rules() -> None:
     assert not service.url_allowed("https://h.example@evil.example/a", ["https://h.example/a"])
     assert not service.url_allowed("not a url", ["https://h.example/"])
     assert service.backoff_s(1, 5, 60) == 5 and service.backoff_s(3, 5, 60) == 20 and service.backoff_s(9, 5, 60) == 60
+
+
+@pytest.mark.postgres
+def test_two_deliverers_on_postgresql_never_send_a_delivery_twice(db_url: str) -> None:
+    import threading
+
+    from app.webhooks.deliverer import Deliverer
+
+    if not db_url.startswith("postgresql"):
+        pytest.skip("several deliverers share a database on PostgreSQL only")
+    # No deliverer thread of the app's own: the two below race each other.
+    settings = make_settings(db_url, **FAST, webhooks_enabled=False, webhook_batch=8)
+    with TestClient(create_app(settings)) as client, Receiver(delay_s=0.2) as rx:
+        api = Api(client)
+        _allow(api, rx.url)
+        sub = _subscribe(api, rx.url)
+        n = 24
+        for _ in range(n):
+            assert api.post(f"/v1/webhooks/{sub['id']}/test").status_code == 202
+        db = api.app.state.db  # type: ignore[attr-defined]
+        deliverers = [Deliverer(db, settings) for _ in range(2)]
+        sent = [0, 0]
+        start = threading.Barrier(2)
+
+        def work(i: int) -> None:
+            start.wait()
+            for _ in range(20):  # bounded rounds
+                sent[i] += deliverers[i].deliver_due()
+
+        threads = [threading.Thread(target=work, args=(i,)) for i in range(2)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(120)
+        for d in deliverers:
+            d.stop()
+        keys = [r.headers["idempotency-key"] for r in rx.received]
+        assert len(keys) == n and len(set(keys)) == n  # every delivery sent, none twice
+        assert sum(sent) == n and min(sent) > 0  # both took part: locked rows were skipped
+        assert len(_deliveries(api, sub["id"], n)) == n
