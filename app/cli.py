@@ -153,6 +153,34 @@ def cmd_streams(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_webhooks(args: argparse.Namespace) -> int:
+    from app.db import Database
+    from app.errors import DomainError
+    from app.webhooks.service import allow_target, disallow_target, targets_by_name
+
+    db = Database(_settings().database_url)
+    try:
+        if args.webhooks_cmd == "allow":
+            with db.write() as s:
+                print(f"allowed {allow_target(s, args.operator, args.prefix)} for {args.operator!r}")
+        elif args.webhooks_cmd == "disallow":
+            with db.write() as s:
+                if not disallow_target(s, args.operator, args.prefix):
+                    print(f"{args.prefix} was not allowed for {args.operator!r}", file=sys.stderr)
+                    return 1
+            print(f"disallowed {args.prefix}; deliveries to URLs under it now fail")
+        elif args.webhooks_cmd == "targets":
+            with db.read() as s:
+                for prefix in targets_by_name(s, args.operator):
+                    print(prefix)
+    except DomainError as exc:
+        print(exc.detail, file=sys.stderr)
+        return 1
+    finally:
+        db.dispose()
+    return 0
+
+
 def openapi_document() -> dict[str, Any]:
     from app.config import Settings
     from app.main import create_app
@@ -205,6 +233,16 @@ def build_parser() -> argparse.ArgumentParser:
     sr.add_argument("tail")
     sr.add_argument("actuator_id")
     sp.set_defaults(func=cmd_streams)
+
+    sp = sub.add_parser("webhooks", help="URL prefixes an operator's webhooks may deliver to")
+    ws = sp.add_subparsers(dest="webhooks_cmd", required=True)
+    for name, text in (("allow", "allow a URL prefix"), ("disallow", "remove an allowed prefix")):
+        wa = ws.add_parser(name, help=text)
+        wa.add_argument("--operator", required=True)
+        wa.add_argument("prefix", help="e.g. https://hooks.example.com/fleethealth")
+    wt = ws.add_parser("targets", help="list the allowed prefixes")
+    wt.add_argument("--operator", required=True)
+    sp.set_defaults(func=cmd_webhooks)
 
     sp = sub.add_parser("export-openapi", help="write the OpenAPI document")
     sp.add_argument("--output", "-o", default="openapi/openapi.json", help="file, or - for stdout")

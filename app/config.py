@@ -58,6 +58,19 @@ class Settings(BaseSettings):
     ws_result_poll_s: float = Field(default=1.0, gt=0)
     socket_send_buffer_bytes: int | None = Field(default=None, gt=0)
     shutdown_timeout_s: float = Field(default=10.0, gt=0)
+    # Fleet event subscribers re-read the log this often (events applied by other processes).
+    events_poll_s: float = Field(default=1.0, gt=0)
+    # Webhooks (docs/operations.md, "Webhooks"): the deliverer thread polls the outbox every
+    # webhook_poll_s, sends up to webhook_batch rows a round with webhook_timeout_s per request,
+    # retries after webhook_retry_base_s doubling per attempt up to webhook_retry_max_s, and
+    # gives up after webhook_max_attempts.
+    webhooks_enabled: bool = True
+    webhook_poll_s: float = Field(default=1.0, gt=0)
+    webhook_batch: int = Field(default=16, gt=0)
+    webhook_timeout_s: float = Field(default=10.0, gt=0)
+    webhook_max_attempts: int = Field(default=12, gt=0)
+    webhook_retry_base_s: float = Field(default=5.0, gt=0)
+    webhook_retry_max_s: float = Field(default=3600.0, gt=0)
 
     @field_validator("bootstrap_admin_key")
     @classmethod

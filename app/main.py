@@ -10,11 +10,13 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 
 from app import __version__
+from app.alarms import router as alarms_router
 from app.auth import router as auth_router
 from app.auth.service import SCOPES, ensure_key
 from app.config import Settings, get_settings
 from app.db import Database
 from app.errors import install_handlers
+from app.events import router as events_router
 from app.faults import router as faults_router
 from app.fleet import router as fleet_router
 from app.health import router as health_router
@@ -22,6 +24,8 @@ from app.processing.processor import Processor
 from app.system import router as system_router
 from app.telemetry import router as telemetry_router
 from app.telemetry.validation import ControlCharGuard
+from app.webhooks import router as webhooks_router
+from app.webhooks.deliverer import Deliverer
 from app.websocket import router as websocket_router
 from estimators.registry import ESTIMATORS
 
@@ -56,6 +60,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.db = db
         app.state.settings = settings
         app.state.processor = processor
+        deliverer = Deliverer(db, settings) if settings.webhooks_enabled else None
+        app.state.deliverer = deliverer
         app.state.kernels_warm = threading.Event()
         if settings.bootstrap_admin_key:
             with db.write() as s:
@@ -73,11 +79,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
         warm = threading.Thread(target=_warm_then_process, name="fleethealth-warm", daemon=True)
         warm.start()
+        if deliverer is not None:
+            deliverer.start()
         try:
             yield
         finally:
             warm.join(timeout=WARM_JOIN_TIMEOUT_S)
             processor.stop()
+            if deliverer is not None:
+                deliverer.stop()
             db.dispose()
 
     app = FastAPI(
@@ -96,6 +106,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         health_router,
         faults_router,
         websocket_router,
+        events_router,
+        alarms_router,
+        webhooks_router,
     ):
         app.include_router(module.router)
     return app

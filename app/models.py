@@ -17,9 +17,11 @@ from sqlalchemy import (
     Integer,
     LargeBinary,
     String,
+    Text,
     TypeDecorator,
     UniqueConstraint,
     false,
+    text,
 )
 from sqlalchemy.orm import Mapped, mapped_column, relationship
 
@@ -289,3 +291,158 @@ class MaintenanceAction(Base):
     status_before: Mapped[str] = mapped_column(String(8))
     recorded_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     recorded_by_key_id: Mapped[int | None] = mapped_column(Integer, nullable=True)
+# ----------------------------------------------------------------------------- event log
+class EventCounter(Base):
+    """The last fleet event id given out per operator. Its row is locked by the transaction
+    that appends events, so ids are given in commit order: a reader that has seen id n never
+    later sees a smaller id appear (no event lost behind a cursor)."""
+
+    __tablename__ = "event_counters"
+    operator_id: Mapped[int] = mapped_column(
+        ForeignKey("operators.id", ondelete="CASCADE"), primary_key=True
+    )
+    last_event_id: Mapped[int] = mapped_column(BigInteger, default=0)
+
+
+class FleetEventRow(Base):
+    """The durable fleet event log: one row per event, ``event_id`` increasing per operator."""
+
+    __tablename__ = "fleet_events"
+    __table_args__ = (
+        UniqueConstraint("operator_id", "event_id"),
+        Index("ix_fleet_events_operator_type", "operator_id", "type", "event_id"),
+    )
+    id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"), primary_key=True)
+    operator_id: Mapped[int] = mapped_column(ForeignKey("operators.id", ondelete="CASCADE"))
+    event_id: Mapped[int] = mapped_column(BigInteger)
+    type: Mapped[str] = mapped_column(String(48))
+    # The actuator's names as they were when the event happened (an actuator removed later
+    # leaves its events readable).
+    tail: Mapped[str] = mapped_column(String(32))
+    actuator_id: Mapped[str] = mapped_column(String(64))
+    actuator_pk: Mapped[int | None] = mapped_column(
+        ForeignKey("actuators.id", ondelete="SET NULL"), nullable=True
+    )
+    seq: Mapped[int | None] = mapped_column(BigInteger, nullable=True)
+    t_s: Mapped[float | None] = mapped_column(Float, nullable=True)
+    body: Mapped[dict[str, Any]] = mapped_column(JSON)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+
+# ----------------------------------------------------------------------------- alarms
+class AlarmRow(Base):
+    """An alarm: raised by a rule from a logged event, then acknowledged and cleared.
+
+    At most one alarm per (actuator, cause, subject) is open (status other than cleared): a
+    partial unique index holds it.
+    """
+
+    __tablename__ = "alarms"
+    __table_args__ = (
+        Index(
+            "uq_alarms_open_cause",
+            "actuator_pk",
+            "cause",
+            "subject",
+            unique=True,
+            sqlite_where=text("status != 'cleared'"),
+            postgresql_where=text("status != 'cleared'"),
+        ),
+        Index("ix_alarms_operator_status", "operator_id", "status", "id"),
+    )
+    id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"), primary_key=True)
+    operator_id: Mapped[int] = mapped_column(ForeignKey("operators.id", ondelete="CASCADE"))
+    actuator_pk: Mapped[int] = mapped_column(ForeignKey("actuators.id", ondelete="CASCADE"))
+    cause: Mapped[str] = mapped_column(String(16))
+    subject: Mapped[str] = mapped_column(String(128), default="")
+    estimator: Mapped[str | None] = mapped_column(String(32), nullable=True)
+    severity: Mapped[str] = mapped_column(String(16))
+    status: Mapped[str] = mapped_column(String(16), default="active")
+    message: Mapped[str] = mapped_column(String(500))
+    # The event that raised it, and the latest that re-triggered or changed it.
+    raised_event_id: Mapped[int] = mapped_column(BigInteger)
+    last_event_id: Mapped[int] = mapped_column(BigInteger)
+    occurrences: Mapped[int] = mapped_column(Integer, default=1)
+    detail: Mapped[dict[str, Any]] = mapped_column(JSON)
+    raised_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    raised_t_s: Mapped[float | None] = mapped_column(Float, nullable=True)
+    updated_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    acknowledged_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    acknowledged_by: Mapped[str | None] = mapped_column(String(200), nullable=True)
+    acknowledge_comment: Mapped[str | None] = mapped_column(String(2000), nullable=True)
+    cleared_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    cleared_by: Mapped[str | None] = mapped_column(String(200), nullable=True)
+    clear_comment: Mapped[str | None] = mapped_column(String(2000), nullable=True)
+    cleared_event_id: Mapped[int | None] = mapped_column(BigInteger, nullable=True)
+
+
+# ----------------------------------------------------------------------------- webhooks
+class WebhookTarget(Base):
+    """Where an operator's webhooks may deliver: a URL prefix registered by the service's
+    administrator (``fleethealth webhooks allow``)."""
+
+    __tablename__ = "webhook_targets"
+    __table_args__ = (UniqueConstraint("operator_id", "prefix"),)
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    operator_id: Mapped[int] = mapped_column(ForeignKey("operators.id", ondelete="CASCADE"))
+    prefix: Mapped[str] = mapped_column(String(2000))
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+
+class WebhookSubscription(Base):
+    __tablename__ = "webhook_subscriptions"
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    operator_id: Mapped[int] = mapped_column(ForeignKey("operators.id", ondelete="CASCADE"))
+    url: Mapped[str] = mapped_column(String(2000))
+    # Event types delivered (empty: every logged type) and tails (None: every tail).
+    event_types: Mapped[list[str]] = mapped_column(JSON)
+    tails: Mapped[list[str] | None] = mapped_column(JSON, nullable=True)
+    # The signing key, kept to sign each delivery (shown once, at creation).
+    secret: Mapped[str] = mapped_column(String(200))
+    description: Mapped[str | None] = mapped_column(String(500), nullable=True)
+    active: Mapped[bool] = mapped_column(Boolean, default=True)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+
+class WebhookDelivery(Base):
+    """The durable outbox: one row per (subscription, event), retried until delivered or
+    out of attempts. The body is stored so that every attempt sends the same bytes."""
+
+    __tablename__ = "webhook_deliveries"
+    __table_args__ = (
+        Index("ix_webhook_deliveries_due", "status", "next_attempt_at"),
+        Index("ix_webhook_deliveries_subscription", "subscription_id", "id"),
+    )
+    id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"), primary_key=True)
+    subscription_id: Mapped[int] = mapped_column(
+        ForeignKey("webhook_subscriptions.id", ondelete="CASCADE")
+    )
+    operator_id: Mapped[int] = mapped_column(ForeignKey("operators.id", ondelete="CASCADE"))
+    event_id: Mapped[int | None] = mapped_column(BigInteger, nullable=True)
+    event_type: Mapped[str] = mapped_column(String(48))
+    idempotency_key: Mapped[str] = mapped_column(String(64), unique=True)
+    body: Mapped[str] = mapped_column(Text)
+    status: Mapped[str] = mapped_column(String(16), default="pending")
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    next_attempt_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    last_attempt_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    last_status_code: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    last_error: Mapped[str | None] = mapped_column(String(500), nullable=True)
+    delivered_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+
+class WebhookAttempt(Base):
+    """One try of a delivery, for the delivery log."""
+
+    __tablename__ = "webhook_attempts"
+    __table_args__ = (Index("ix_webhook_attempts_delivery", "delivery_id", "attempt"),)
+    id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"), primary_key=True)
+    delivery_id: Mapped[int] = mapped_column(
+        ForeignKey("webhook_deliveries.id", ondelete="CASCADE")
+    )
+    attempt: Mapped[int] = mapped_column(Integer)
+    at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    status_code: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    error: Mapped[str | None] = mapped_column(String(500), nullable=True)
+    duration_ms: Mapped[float] = mapped_column(Float)

@@ -241,12 +241,14 @@ class FleetActuator(BaseModel):
     active_faults: list[str] = Field(
         default_factory=list, description="Components with a detected, not yet cleared, fault"
     )
+    open_alarms: int = Field(default=0, description="Active and acknowledged alarms (GET /v1/alarms)")
 
 
 class FleetAircraft(BaseModel):
     tail: str
     status: HealthStatus
     updated_at: datetime | None
+    open_alarms: int = Field(default=0, description="Open alarms of all its actuators")
     actuators: list[FleetActuator]
 
 

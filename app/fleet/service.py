@@ -11,6 +11,7 @@ from typing import Any, Literal
 import numpy as np
 from sqlalchemy.orm import Session
 
+from app.alarms import service as alarms
 from app.errors import AlreadyExists, Gone, InvalidConfig, MaintenancePending, NotFound
 from app.faults import service as faults
 from app.fleet import repository
@@ -371,7 +372,7 @@ def _rul_key(q05: float | None) -> tuple[bool, float]:
     return (q05 is None, q05 if q05 is not None else 0.0)
 
 
-def _actuator_entry(r: BoardRow, open_faults: list[str]) -> dict[str, Any]:
+def _actuator_entry(r: BoardRow, open_faults: list[str], open_alarms: int) -> dict[str, Any]:
     return {
         "actuator_id": r.actuator_id,
         "kind": r.kind,
@@ -385,6 +386,7 @@ def _actuator_entry(r: BoardRow, open_faults: list[str]) -> dict[str, Any]:
         "rul_q50_s": r.rul_q50_s,
         "rul_t_s": r.rul_t_s,
         "active_faults": open_faults,
+        "open_alarms": open_alarms,
     }
 
 
@@ -414,17 +416,20 @@ def fleet_board(
     ``limit`` aircraft after the board key ``after``, and the key of the last one when more
     follow."""
     rows = repository.board_rows(session, operator_id)
-    components = faults.open_fault_components(
-        session, [r.actuator_pk for r in rows if r.actuator_pk is not None]
-    )
+    pks = [r.actuator_pk for r in rows if r.actuator_pk is not None]
+    components = faults.open_fault_components(session, pks)
+    alarm_counts = alarms.open_counts(session, pks)
     by_tail: dict[str, dict[str, Any]] = {}
     for r in rows:
         ac = by_tail.setdefault(r.tail, {"tail": r.tail, "updated_at": None, "actuators": []})
         if r.actuator_pk is not None:
-            ac["actuators"].append(_actuator_entry(r, components[r.actuator_pk]))
+            ac["actuators"].append(
+                _actuator_entry(r, components[r.actuator_pk], alarm_counts.get(r.actuator_pk, 0))
+            )
     for ac in by_tail.values():
         acts = ac["actuators"]
         ac["status"] = worst_status([a["status"] for a in acts])
+        ac["open_alarms"] = sum(a["open_alarms"] for a in acts)
         ups = [a["updated_at"] for a in acts if a["updated_at"] is not None]
         ac["updated_at"] = max(ups) if ups else None
         if sort == "rul":

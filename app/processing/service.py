@@ -13,6 +13,7 @@ from sqlalchemy.orm import Session
 from app.auth import repository as auth_repository
 from app.codec import decode_columns
 from app.errors import NotFound
+from app.events import service as events
 from app.fleet import service as fleet
 from app.ingest import TIME_COLUMN
 from app.models import (
@@ -164,7 +165,7 @@ def apply_pending(
     stream.status = step.status
     stream.updated_at = now
     session.flush()
-    return ApplyResult(
+    result = ApplyResult(
         batches=len(pending),
         samples=sum(b.n_samples for b in pending),
         last_applied_seq=stream.last_applied_seq,
@@ -173,6 +174,8 @@ def apply_pending(
         status_before=status_before,
         status_after=stream.status,
     )
+    events.record_apply(session, result)  # the fleet event log and alarms, in this transaction
+    return result
 
 
 class Replay(Enum):

@@ -51,8 +51,13 @@ class Subscription:
     accept: Callable[[Any], bool] = field(default=lambda _item: True)
     overflowed: bool = False
     wakeup: asyncio.Event = field(default_factory=asyncio.Event)
+    # Only wake the subscriber up (it reads what happened from the durable event log).
+    wake_only: bool = False
 
     def _offer(self, item: Any) -> None:  # runs in the subscriber's loop
+        if self.wake_only:
+            self.wakeup.set()
+            return
         if self.overflowed:
             return
         try:
@@ -99,6 +104,18 @@ class Hub:
             )
 
         sub = Subscription(asyncio.get_running_loop(), asyncio.Queue(maxsize), accept)
+        with self._lock:
+            self._fleet.add(sub)
+        return sub
+
+    def subscribe_fleet_wakeup(self, operator_id: int) -> Subscription:
+        """Woken when this process applied a batch that produced fleet events of the operator
+        (other processes' are found by re-reading the log)."""
+
+        def accept(ev: dict[str, Any]) -> bool:
+            return bool(ev["_operator_id"] == operator_id and ev["type"] != "applied")
+
+        sub = Subscription(asyncio.get_running_loop(), asyncio.Queue(1), accept, wake_only=True)
         with self._lock:
             self._fleet.add(sub)
         return sub

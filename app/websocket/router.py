@@ -31,6 +31,8 @@ from app.auth.service import Principal
 from app.config import Settings
 from app.db import Database
 from app.errors import DomainError, IdempotencyConflict, InvalidBatch, StaleBatch
+from app.events import service as events
+from app.events.service import LOGGED_TYPES
 from app.ingest import UnsupportedFrame
 from app.processing.processor import Processor
 from app.telemetry import service as telemetry
@@ -50,6 +52,8 @@ CLOSE_INVALID = 1007
 CLOSE_POLICY = 1008
 CLOSE_INTERNAL = 1011
 CLOSE_TRY_LATER = 1013
+# Logged events read per query by a fleet subscriber.
+LOG_PAGE = 500
 
 
 def _dumps(obj: Any) -> str:
@@ -324,7 +328,13 @@ async def stream(ws: WebSocket, tail: str, actuator_id: str) -> None:
 @router.websocket("/fleet/events")
 async def fleet_events(ws: WebSocket) -> None:
     """Fleet events of the key's operator: status changes, fault detections and clearances,
-    RUL and deterioration thresholds crossed (and, on request, every applied batch)."""
+    RUL and deterioration thresholds crossed, alarms (and, on request, every applied batch).
+
+    Logged events come from the durable event log, after ``?after=<id>`` when given (resume
+    without loss), else from the newest; the process's own applies wake the reader up and a
+    poll every ``events_poll_s`` finds those of other processes. ``applied`` events are pushed
+    live only.
+    """
     db: Database = ws.app.state.db
     settings: Settings = ws.app.state.settings
     hub: Hub = ws.app.state.processor.hub
@@ -335,39 +345,77 @@ async def fleet_events(ws: WebSocket) -> None:
     tails = [t for v in ws.query_params.getlist("tail") for t in v.split(",") if t]
     raw_types = ws.query_params.get("types")
     types = [t for t in raw_types.split(",") if t] if raw_types else sorted(DEFAULT_FLEET_TYPES)
-    bad = sorted(set(types) - ALL_FLEET_TYPES)
+    known = {*LOGGED_TYPES, *ALL_FLEET_TYPES}
+    bad = sorted(set(types) - known)
     if bad:
-        await _refuse(
-            ws, CLOSE_POLICY, "InvalidConfig", f"unknown event types {bad}; known: {sorted(ALL_FLEET_TYPES)}"
-        )
+        await _refuse(ws, CLOSE_POLICY, "InvalidConfig", f"unknown event types {bad}; known: {sorted(known)}")
         return
-    sub = hub.subscribe_fleet(principal.operator_id, tails or None, types, settings.ws_subscriber_queue)
+    raw_after = ws.query_params.get("after")
+    if raw_after is not None and not (raw_after.isdigit() and int(raw_after) <= 2**53):
+        await _refuse(ws, CLOSE_POLICY, "InvalidConfig", f"after must be an event id (0 or more), got {raw_after!r}")
+        return
+    operator_id = principal.operator_id
+    logged = sorted(set(types) & LOGGED_TYPES)
+    cursor = int(raw_after) if raw_after is not None else await run_in_threadpool(events.head, db, operator_id)
+    live = hub.subscribe_fleet(operator_id, tails or None, ["applied"], settings.ws_subscriber_queue) if "applied" in types else None
+    wake = hub.subscribe_fleet_wakeup(operator_id) if logged else None
+    lock = asyncio.Lock()
     WS_CONNECTIONS.labels("fleet").inc()
 
-    async def sender() -> None:
-        await ws.send_text(_dumps({"type": "ready", "tails": tails or None, "types": sorted(types)}))
+    async def send_live() -> None:
+        assert live is not None
         while True:
-            ev = await sub.queue.get()
-            await ws.send_text(_dumps(public(ev)))
+            ev = await live.queue.get()
+            await _send(ws, lock, public(ev))
+
+    async def follow_log() -> None:
+        nonlocal cursor
+        assert wake is not None
+        while True:
+            wake.wakeup.clear()
+            batch = await run_in_threadpool(
+                events.read_after, db, operator_id, cursor, LOG_PAGE, logged, tails or None
+            )
+            for ev in batch:
+                await _send(ws, lock, ev)
+                cursor = ev["id"]
+            if len(batch) < LOG_PAGE:
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(wake.wakeup.wait(), settings.events_poll_s)
 
     async def watch_overflow() -> None:
-        while not sub.overflowed:
-            sub.wakeup.clear()
-            await sub.wakeup.wait()
+        assert live is not None
+        while not live.overflowed:
+            live.wakeup.clear()
+            await live.wakeup.wait()
 
     async def watch_peer() -> None:
         while (await ws.receive())["type"] != "websocket.disconnect":
             pass  # subscribers have nothing to say; anything they send is ignored
 
-    tasks = [asyncio.create_task(c()) for c in (sender, watch_overflow, watch_peer)]
+    tasks: list[asyncio.Task[None]] = []
     try:
-        await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+        await _send(ws, lock, {"type": "ready", "tails": tails or None, "types": sorted(types), "after": cursor})
+        tasks.append(asyncio.create_task(watch_peer()))
+        if live is not None:
+            tasks += [asyncio.create_task(send_live()), asyncio.create_task(watch_overflow())]
+        if wake is not None:
+            tasks.append(asyncio.create_task(follow_log()))
+        done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+        for task in done:
+            exc = task.exception()
+            if exc is not None and not isinstance(exc, WebSocketDisconnect):
+                log.error("fleet event subscription failed", exc_info=exc)
+    except WebSocketDisconnect:
+        log.debug("fleet subscriber left before ready")
     finally:
         for t in tasks:
             t.cancel()
-        hub.unsubscribe(sub)
+        for sub in (live, wake):
+            if sub is not None:
+                hub.unsubscribe(sub)
         WS_CONNECTIONS.labels("fleet").dec()
-    if sub.overflowed:
+    if live is not None and live.overflowed:
         WS_DROPPED.inc()
         # The close frame waits behind whatever the slow peer has not read yet; give up after
         # ws_close_timeout_s and let the server drop the socket.

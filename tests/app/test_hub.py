@@ -117,3 +117,26 @@ def test_rest_batch_ids_cannot_take_the_frame_prefix(api) -> None:  # type: igno
     api.setup_actuator()
     r = api.send_json("N1", "ema1", "ws-1", np.arange(3.0), {"current": np.ones(3), "voltage": np.ones(3)})
     assert r.status_code == 400 and "reserved" in r.json()["detail"]
+
+
+def test_a_wake_only_subscription_is_woken_by_its_operators_logged_events_only() -> None:
+    hub = Hub()
+
+    async def run() -> list[tuple[bool, int]]:
+        sub = hub.subscribe_fleet_wakeup(7)
+        out = []
+        for ev in (
+            {"_operator_id": 8, "type": "status_changed", "tail": "N1"},  # another operator
+            {"_operator_id": 7, "type": "applied", "tail": "N1"},  # live only, not logged
+            {"_operator_id": 7, "type": "fault_detected", "tail": "N1"},
+        ):
+            sub.wakeup.clear()
+            t = threading.Thread(target=hub.publish_fleet, args=([ev],))
+            t.start()
+            t.join()
+            await asyncio.sleep(0.05)
+            out.append((sub.wakeup.is_set(), sub.queue.qsize()))
+        hub.unsubscribe(sub)
+        return out
+
+    assert asyncio.run(run()) == [(False, 0), (False, 0), (True, 0)]

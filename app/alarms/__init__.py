@@ -1,0 +1,1 @@
+"""Alarms: raised by rules from logged fleet events, acknowledged and cleared by people."""
