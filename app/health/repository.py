@@ -53,9 +53,9 @@ def windows(
     estimator: str | None,
     from_s: float | None,
     to_s: float | None,
-    limit: int,
+    limit: int | None,
 ) -> list[HealthWindowRow]:
-    """Windows whose span meets [from_s, to_s], oldest first."""
+    """Windows whose span meets [from_s, to_s], oldest first (at most ``limit``; None: all)."""
     stmt = select(HealthWindowRow).where(HealthWindowRow.actuator_pk == actuator_pk)
     if estimator is not None:
         stmt = stmt.where(HealthWindowRow.estimator == estimator)
@@ -63,8 +63,8 @@ def windows(
         stmt = stmt.where(HealthWindowRow.t_end_s >= from_s)
     if to_s is not None:
         stmt = stmt.where(HealthWindowRow.t_start_s <= to_s)
-    stmt = stmt.order_by(HealthWindowRow.t_end_s, HealthWindowRow.estimator).limit(limit)
-    return list(session.scalars(stmt))
+    stmt = stmt.order_by(HealthWindowRow.t_end_s, HealthWindowRow.estimator)
+    return list(session.scalars(stmt if limit is None else stmt.limit(limit)))
 
 
 def sample_outputs(

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query
 
@@ -79,3 +79,29 @@ def actuator_rul(
     [from_s, to_s] (oldest first). Times are seconds of stream time; a null RUL means the failure
     threshold is not reached within the prediction horizon."""
     return schemas.ActuatorRul.model_validate(service.rul(s, tail, act, estimator, from_s, to_s, limit))
+
+
+@router.get(f"{ACT}/series", response_model=schemas.SeriesPublic, responses=error_responses(401, 403, 404))
+def actuator_series(
+    act: ActuatorDep,
+    s: ReadSessionDep,
+    estimator: str,
+    source: Annotated[
+        Literal["outputs", "health"],
+        Query(description="`outputs`: per-sample outputs; `health`: health-window indicators at each window's end"),
+    ] = "outputs",
+    names: Annotated[
+        str | None, Query(description="Comma-separated series to return (default: all of the source)")
+    ] = None,
+    from_s: StreamTime = None,
+    to_s: StreamTime = None,
+    points: Annotated[int, Query(ge=2, le=20_000, description="Width of the plot in pixels")] = 1000,
+) -> schemas.SeriesPublic:
+    """A series for plotting: at most `points` samples of the outputs (or health indicators) of
+    one estimator over [from_s, to_s]. Longer spans keep, per `points / 2` equal time buckets,
+    each series' minimum and maximum in their order, so the plot shows every peak and trough;
+    zooming in asks for a shorter span and gets finer data."""
+    wanted = None if names is None else [n for n in (p.strip() for p in names.split(",")) if n]
+    return schemas.SeriesPublic.model_validate(
+        service.series(s, act, estimator, source, wanted, from_s, to_s, points)
+    )

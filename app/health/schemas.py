@@ -89,3 +89,17 @@ class ActuatorRul(BaseModel):
     latest: dict[str, RulEstimatePublic] = Field(description="Estimator -> its latest prognosis")
     items: list[RulEstimatePublic] = Field(description="Prognoses in [from_s, to_s], oldest first")
     truncated: bool
+
+
+class SeriesPublic(BaseModel):
+    estimator: str
+    source: str = Field(description="`outputs` (per-sample outputs) or `health` (window indicators)")
+    from_s: float | None = Field(description="Start of the span drawn (the first sample's time by default)")
+    to_s: float | None = Field(description="End of the span drawn (the last sample's time by default)")
+    n_samples: int = Field(description="Samples (or windows) in the span before downsampling")
+    reduced: bool = Field(
+        description="True when the span held more than `points` samples and per-bucket minima "
+        "and maxima replace them"
+    )
+    t_s: list[float]
+    series: dict[str, list[float | None]]

@@ -10,6 +10,7 @@ from sqlalchemy.orm import Session
 from app.codec import decode_columns
 from app.errors import NotFound
 from app.health import repository
+from app.health.downsample import min_max_downsample
 from app.ingest import TIME_COLUMN
 from app.models import Actuator
 from app.processing.messages import event_public, rul_public, window_public
@@ -129,4 +130,88 @@ def rul(
         "latest": latest,
         "items": [rul_public(r) for r in rows[:limit]],
         "truncated": len(rows) > limit,
+    }
+
+
+SERIES_SOURCES = ("outputs", "health")
+
+
+def _outputs_columns(
+    session: Session, act: Actuator, estimator: str, from_s: float | None, to_s: float | None,
+    names: list[str] | None,
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Every per-sample output of ``estimator`` in [from_s, to_s] (only ``names`` if given)."""
+    times: list[np.ndarray] = []
+    columns: dict[str, list[np.ndarray]] = {}
+    for row in repository.sample_outputs(session, act.id, estimator, from_s, to_s):
+        cols = decode_columns(row.payload)
+        t = cols.pop(TIME_COLUMN)
+        keep: slice | np.ndarray = slice(None)
+        if (from_s is not None and t[0] < from_s) or (to_s is not None and t[-1] > to_s):
+            keep = (t >= (-np.inf if from_s is None else from_s)) & (t <= (np.inf if to_s is None else to_s))
+        times.append(t[keep])
+        for name in names if names is not None else cols:
+            if name not in cols:
+                raise NotFound(f"estimator {estimator!r} has no output {name!r} (it has {', '.join(cols)})")
+            columns.setdefault(name, []).append(cols[name][keep])
+    t_all = np.concatenate(times) if times else np.empty(0)
+    return t_all, {k: np.concatenate(v) for k, v in columns.items()}
+
+
+def _health_columns(
+    session: Session, act: Actuator, estimator: str, from_s: float | None, to_s: float | None,
+    names: list[str] | None,
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """The health indicators of ``estimator``'s windows ending in [from_s, to_s], at each
+    window's end."""
+    rows = [
+        r for r in repository.windows(session, act.id, estimator, from_s, to_s, limit=None)
+        if (from_s is None or r.t_end_s >= from_s) and (to_s is None or r.t_end_s <= to_s)
+    ]
+    found = sorted({k for r in rows for k in r.indicators})
+    for name in names or []:
+        if rows and name not in found:
+            raise NotFound(f"estimator {estimator!r} has no health indicator {name!r} (it has {', '.join(found)})")
+    wanted = names if names is not None else found
+    t = np.array([r.t_end_s for r in rows], dtype=np.float64)
+    cols = {
+        name: np.array([np.nan if r.indicators.get(name) is None else r.indicators[name] for r in rows],
+                       dtype=np.float64)
+        for name in wanted
+    }
+    return t, cols
+
+
+def series(
+    session: Session,
+    act: Actuator,
+    estimator: str,
+    source: str,
+    names: list[str] | None,
+    from_s: float | None,
+    to_s: float | None,
+    points: int,
+) -> dict[str, Any]:
+    """Outputs or health indicators of one estimator over [from_s, to_s], min/max downsampled
+    to ``points`` (docs/api.md, "Plotting series")."""
+    _check_estimator(session, act, estimator)
+    read = _outputs_columns if source == "outputs" else _health_columns
+    t, cols = read(session, act, estimator, from_s, to_s, names)
+    n = len(t)
+    span_from = from_s if from_s is not None else (float(t[0]) if n else None)
+    span_to = to_s if to_s is not None else (float(t[-1]) if n else None)
+    if n:
+        d = min_max_downsample(t, cols, points, span_from, span_to)
+        t, cols, reduced = d.t_s, d.series, d.reduced
+    else:
+        reduced = False
+    return {
+        "estimator": estimator,
+        "source": source,
+        "from_s": span_from,
+        "to_s": span_to,
+        "n_samples": n,
+        "reduced": reduced,
+        "t_s": t.tolist(),
+        "series": {k: _as_list(v) for k, v in cols.items()},
     }
