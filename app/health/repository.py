@@ -14,6 +14,7 @@ from app.models import (
     RulEstimateRow,
     SampleOutputRow,
     Stream,
+    TelemetryBatch,
 )
 
 
@@ -117,3 +118,17 @@ def ruls(
     if to_s is not None:
         stmt = stmt.where(RulEstimateRow.t_s <= to_s)
     return list(session.scalars(stmt.order_by(RulEstimateRow.t_s, RulEstimateRow.id).limit(limit)))
+
+
+def telemetry_batches(
+    session: Session, actuator_pk: int, from_s: float | None, to_s: float | None
+) -> Iterator[TelemetryBatch]:
+    """Logged batches still holding their samples that meet [from_s, to_s], in stream order."""
+    stmt = select(TelemetryBatch).where(
+        TelemetryBatch.actuator_pk == actuator_pk, TelemetryBatch.payload.is_not(None)
+    )
+    if from_s is not None:
+        stmt = stmt.where(TelemetryBatch.t_last_s >= from_s)
+    if to_s is not None:
+        stmt = stmt.where(TelemetryBatch.t_first_s <= to_s)
+    return iter(session.scalars(stmt.order_by(TelemetryBatch.seq)))

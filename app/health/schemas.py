@@ -92,8 +92,8 @@ class ActuatorRul(BaseModel):
 
 
 class SeriesPublic(BaseModel):
-    estimator: str
-    source: str = Field(description="`outputs` (per-sample outputs) or `health` (window indicators)")
+    estimator: str | None
+    source: str = Field(description="`outputs`, `health` or `telemetry`")
     from_s: float | None = Field(description="Start of the span drawn (the first sample's time by default)")
     to_s: float | None = Field(description="End of the span drawn (the last sample's time by default)")
     n_samples: int = Field(description="Samples (or windows) in the span before downsampling")

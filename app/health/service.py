@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
 from sqlalchemy.orm import Session
 
 from app.codec import decode_columns
-from app.errors import NotFound
+from app.errors import InvalidQuery, NotFound
 from app.health import repository
 from app.health.downsample import min_max_downsample
 from app.ingest import TIME_COLUMN
@@ -133,18 +134,14 @@ def rul(
     }
 
 
-SERIES_SOURCES = ("outputs", "health")
-
-
-def _outputs_columns(
-    session: Session, act: Actuator, estimator: str, from_s: float | None, to_s: float | None,
-    names: list[str] | None,
+def _column_blocks(
+    payloads: Iterator[bytes], what: str, from_s: float | None, to_s: float | None, names: list[str] | None,
 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """Every per-sample output of ``estimator`` in [from_s, to_s] (only ``names`` if given)."""
+    """The columns of stored blocks (outputs or telemetry) cut to [from_s, to_s], joined."""
     times: list[np.ndarray] = []
     columns: dict[str, list[np.ndarray]] = {}
-    for row in repository.sample_outputs(session, act.id, estimator, from_s, to_s):
-        cols = decode_columns(row.payload)
+    for payload in payloads:
+        cols = decode_columns(payload)
         t = cols.pop(TIME_COLUMN)
         keep: slice | np.ndarray = slice(None)
         if (from_s is not None and t[0] < from_s) or (to_s is not None and t[-1] > to_s):
@@ -152,10 +149,29 @@ def _outputs_columns(
         times.append(t[keep])
         for name in names if names is not None else cols:
             if name not in cols:
-                raise NotFound(f"estimator {estimator!r} has no output {name!r} (it has {', '.join(cols)})")
+                raise NotFound(f"{what} has no series {name!r} (it has {', '.join(cols)})")
             columns.setdefault(name, []).append(cols[name][keep])
     t_all = np.concatenate(times) if times else np.empty(0)
     return t_all, {k: np.concatenate(v) for k, v in columns.items()}
+
+
+def _outputs_columns(
+    session: Session, act: Actuator, estimator: str, from_s: float | None, to_s: float | None,
+    names: list[str] | None,
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Every per-sample output of ``estimator`` in [from_s, to_s] (only ``names`` if given)."""
+    rows = repository.sample_outputs(session, act.id, estimator, from_s, to_s)
+    return _column_blocks((r.payload for r in rows), f"estimator {estimator!r}", from_s, to_s, names)
+
+
+def _telemetry_columns(
+    session: Session, act: Actuator, estimator: str, from_s: float | None, to_s: float | None,
+    names: list[str] | None,
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """The channels of the logged batches in [from_s, to_s] that still hold their samples."""
+    rows = repository.telemetry_batches(session, act.id, from_s, to_s)
+    payloads = (r.payload for r in rows if r.payload is not None)
+    return _column_blocks(payloads, f"actuator {act.actuator_id!r}", from_s, to_s, names)
 
 
 def _health_columns(
@@ -185,7 +201,7 @@ def _health_columns(
 def series(
     session: Session,
     act: Actuator,
-    estimator: str,
+    estimator: str | None,
     source: str,
     names: list[str] | None,
     from_s: float | None,
@@ -194,9 +210,14 @@ def series(
 ) -> dict[str, Any]:
     """Outputs or health indicators of one estimator over [from_s, to_s], min/max downsampled
     to ``points`` (docs/api.md, "Plotting series")."""
-    _check_estimator(session, act, estimator)
-    read = _outputs_columns if source == "outputs" else _health_columns
-    t, cols = read(session, act, estimator, from_s, to_s, names)
+    if source == "telemetry":
+        t, cols = _telemetry_columns(session, act, "", from_s, to_s, names)
+    elif estimator is None:
+        raise InvalidQuery(f"source {source!r} needs estimator=<name>")
+    else:
+        _check_estimator(session, act, estimator)
+        read = _outputs_columns if source == "outputs" else _health_columns
+        t, cols = read(session, act, estimator, from_s, to_s, names)
     n = len(t)
     span_from = from_s if from_s is not None else (float(t[0]) if n else None)
     span_to = to_s if to_s is not None else (float(t[-1]) if n else None)

@@ -73,3 +73,16 @@ def test_series_refuse_unknown_names_and_estimators(api: Api) -> None:
     assert r.status_code == 422
     r = api.get(SERIES, params={"estimator": "fakf", "from_s": 1e9, "to_s": 2e9})
     assert r.status_code == 200 and r.json()["n_samples"] == 0 and r.json()["t_s"] == []
+
+
+def test_series_of_the_logged_telemetry_share_the_outputs_time_stamps(api: Api) -> None:
+    _feed(api, n_batches=2)
+    out = api.get(SERIES, params={"estimator": "fakf", "names": "voltage_estimate", "points": 300}).json()
+    tel = api.get(SERIES, params={"source": "telemetry", "names": "voltage", "points": 300}).json()
+    assert tel["n_samples"] == out["n_samples"] == 2000 and tel["estimator"] is None
+    assert tel["t_s"] == out["t_s"]  # the same samples give the same buckets: one plot, one x axis
+    s = make_series(2000, seed=5)
+    got = np.array([np.nan if x is None else x for x in tel["series"]["voltage"]])
+    assert np.nanmax(got) == np.nanmax(s.voltage) and np.nanmin(got) == np.nanmin(s.voltage)
+    r = api.get(SERIES, params={"source": "outputs"})
+    assert r.status_code == 400 and r.json()["error"] == "InvalidQuery"
