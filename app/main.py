@@ -13,6 +13,7 @@ from app import __version__
 from app.auth import router as auth_router
 from app.auth.service import SCOPES, ensure_key
 from app.config import Settings, get_settings
+from app.dashboard import router as dashboard_router
 from app.db import Database
 from app.errors import install_handlers
 from app.faults import router as faults_router
@@ -98,4 +99,5 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         websocket_router,
     ):
         app.include_router(module.router)
+    dashboard_router.install(app)
     return app
