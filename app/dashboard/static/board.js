@@ -128,8 +128,8 @@ export class Board {
     this.table.replaceChildren(t);
   }
 
-  // A fleet event: note it, patch the board at once, then read the board again shortly after
-  // (several events of one batch arrive together).
+  // A fleet event: note it, patch the board at once, then read the board again within a second
+  // (at most once a second, however many events arrive).
   onEvent(ev) {
     if (!ev.tail || !ev.actuator_id) return; // the stream's own messages (ready, ...)
     this.events.unshift(ev);
@@ -146,8 +146,9 @@ export class Board {
         this.render();
       }
     }
-    clearTimeout(this.refreshTimer);
-    this.refreshTimer = setTimeout(() => this.load().catch(() => {}), 1000);
+    if (!this.refreshTimer) {
+      this.refreshTimer = setTimeout(() => { this.refreshTimer = null; this.load().catch(() => {}); }, 1000);
+    }
   }
 
   renderEvents() {
