@@ -9,7 +9,7 @@ NPM    ?= npm
 # The dashboard's chart library (uPlot, pinned by package-lock.json), copied from node_modules
 # into the app package so that the app serves it itself (no CDN) and the wheel carries it.
 VENDOR := app/dashboard/static/vendor
-UPLOT  := $(VENDOR)/uPlot.esm.js
+UPLOT  := $(VENDOR)/uPlot.iife.min.js
 export FLEETHEALTH_REQUIRE_PG ?= 1
 
 .PHONY: run demo test test-fast lint typecheck bench validate openapi migrate screenshots clean
@@ -27,7 +27,7 @@ $(UPLOT): package.json package-lock.json
 	@command -v $(NPM) >/dev/null || { echo "need npm (Node.js) to install the dashboard's chart library"; exit 1; }
 	$(NPM) ci --no-audit --no-fund --ignore-scripts --loglevel=error
 	mkdir -p $(VENDOR)
-	cp node_modules/uplot/dist/uPlot.esm.js node_modules/uplot/dist/uPlot.min.css $(VENDOR)/
+	cp node_modules/uplot/dist/uPlot.iife.min.js node_modules/uplot/dist/uPlot.min.css $(VENDOR)/
 	cp node_modules/uplot/LICENSE $(VENDOR)/uPlot.LICENSE
 
 ## Create the environment, migrate the embedded SQLite database and serve on 127.0.0.1:8000.

@@ -10,6 +10,7 @@ import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 import httpx
 import pytest
@@ -75,15 +76,20 @@ def browser() -> Iterator[Any]:
 
 
 @pytest.fixture
-def page(browser: Any) -> Iterator[Any]:
+def page(browser: Any, server: LiveServer) -> Iterator[Any]:
     # The page's CSP forbids eval; the tests' own wait expressions need it.
     context = browser.new_context(viewport={"width": 1400, "height": 1000}, bypass_csp=True)
     pg = context.new_page()
     errors: list[str] = []
+    requests: list[str] = []
     pg.on("pageerror", lambda e: errors.append(str(e)))
+    pg.on("request", lambda r: requests.append(r.url))
     yield pg
     context.close()
     assert errors == [], f"the page raised: {errors}"
+    origin = urlsplit(server.url).netloc
+    elsewhere = [u for u in requests if not u.startswith("data:") and urlsplit(u).netloc != origin]
+    assert requests and elsewhere == [], f"requests to other hosts: {elsewhere}"
 
 
 def _open(page: Any, server: LiveServer, key: str, fragment: str = "") -> None:

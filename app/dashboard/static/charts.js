@@ -1,5 +1,6 @@
 // Time-series charts (uPlot) that fetch server-downsampled data and fetch finer data on zoom.
-import uPlot from "/dashboard/vendor/uPlot.esm.js";
+// uPlot's minified build (loaded by index.html before this module) defines window.uPlot.
+const uPlot = window.uPlot;
 
 export const COLORS = ["#1f6feb", "#e8590c", "#2f9e44", "#9c36b5", "#c92a2a", "#0c8599", "#e6a700", "#5c940d", "#862e9c", "#495057"];
 export const STATUS_COLORS = {
