@@ -158,14 +158,14 @@ export class SeriesChart {
       ctx.font = `${11 * devicePixelRatio}px system-ui`;
       ctx.fillText(ln.label, left + 4, y - 3);
     }
-    for (const m of this.marks) {
+    for (const [i, m] of this.marks.entries()) {
       const x = u.valToPos(m.t, "x", true);
       if (x < left || x > left + w) continue;
       ctx.strokeStyle = m.color || "#c92a2a";
       ctx.beginPath(); ctx.moveTo(x, top); ctx.lineTo(x, top + h); ctx.stroke();
       ctx.fillStyle = m.color || "#c92a2a";
       ctx.font = `${11 * devicePixelRatio}px system-ui`;
-      ctx.fillText(m.label, x + 3, top + 12 * devicePixelRatio);
+      ctx.fillText(m.label, x + 3, top + (12 + 13 * (i % 3)) * devicePixelRatio); // staggered: marks crowd
     }
     ctx.restore();
   }
