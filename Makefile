@@ -59,7 +59,7 @@ openapi: $(STAMP)
 	$(BIN)/fleethealth export-openapi --output openapi/openapi.json
 
 ## Benchmarks print figures (never asserted).
-bench: $(STAMP)
+bench: $(STAMP) $(UPLOT)
 	$(BIN)/python bench/bench_fakf.py
 	$(BIN)/python bench/bench_deterioration_ekf.py
 	$(BIN)/python bench/bench_stmmae.py

@@ -56,3 +56,12 @@ def test_the_page_needs_no_key_but_the_data_does(api: Any) -> None:
     assert api.c.get("/dashboard/app.js").status_code == 200
     assert api.c.get("/v1/fleet/health").status_code == 401
     assert api.c.get("/dashboard/../app/main.py").status_code == 404
+
+
+def test_without_the_chart_library_the_page_says_how_to_install_it(api: Any, monkeypatch: Any,
+                                                                     tmp_path: Any) -> None:
+    from app.dashboard import router
+
+    monkeypatch.setattr(router, "CHART_LIBRARY", tmp_path / "missing.js")
+    r = api.c.get("/")
+    assert r.status_code == 503 and "make" in r.text and "npm ci" in r.text

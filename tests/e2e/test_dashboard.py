@@ -133,7 +133,10 @@ def test_a_fault_injected_by_the_simulator_appears_live(server: LiveServer, read
     cell = 'tr[data-tail="LV-002"] td[data-actuator="flight-controls"]'
     page.wait_for_selector(f"{cell} [data-fault]", timeout=WAIT_MS * 2)
     assert page.get_attribute(f"{cell} [data-fault]", "data-fault") == "aileron_left"  # the paper's first fault
-    assert page.get_attribute(cell, "data-status") in ("alert", "failed", "watch")
+    page.wait_for_function(  # the status change may arrive a message after the detection
+        "(sel) => ['watch', 'alert', 'failed'].includes(document.querySelector(sel).dataset.status)",
+        arg=cell, timeout=WAIT_MS,
+    )
     assert page.evaluate("window.__same_page") is True
     events = page.inner_text("#events")
     assert "LV-002 / flight-controls: fault_detected aileron_left" in events
@@ -217,3 +220,14 @@ def test_zoom_fetches_finer_data(server: LiveServer, read_key: str, fleet: dict[
     assert after["x1"] - after["x0"] < (before["x1"] - before["x0"]) / 5
     # Finer: more samples per second of stream time than the whole-span view had.
     assert after["x"] / (after["x1"] - after["x0"]) > 2 * before["x"] / (before["x1"] - before["x0"])
+
+
+def test_a_page_without_data_says_so(server: LiveServer, read_key: str, page: Any) -> None:
+    with FleetHealthClient(server.url, server.api_key, timeout=60.0) as client:
+        client.create_aircraft("NEW-1")
+        client.create_actuator("NEW-1", "surface", kind="sha_ema")
+    _open(page, server, read_key, "#/a/NEW-1/surface")
+    for chart in ("darr-residuals", "darr-parameters"):
+        page.wait_for_selector(f'[data-chart="{chart}"] .empty', timeout=WAIT_MS)
+        assert page.inner_text(f'[data-chart="{chart}"] .empty') == "no data yet"
+    assert "learning" in page.inner_text("#facts")

@@ -159,8 +159,7 @@ async function deteriorationPlots({ grid, fetchSeries, base, act }) {
 }
 
 // ---------------------------------------------------------------- STMMAE (flight_controls)
-async function stmmaePlots({ grid, fetchSeries, base, act }) {
-  const cfg = act.estimators.stmmae || {};
+async function stmmaePlots({ grid, fetchSeries, base }) {
   const faults = await get(`${base}/faults`, { limit: 200 });
   const diag = (faults.estimators.stmmae || {}).diagnosis || {};
   const hyps = Object.keys(diag.probabilities || {}).filter((h) => !h.includes("+"));
@@ -178,7 +177,7 @@ async function stmmaePlots({ grid, fetchSeries, base, act }) {
       sources: [{ params: est, series: surfaces.map((s) => ({ name: `deflection_${s}`, label: s, scale: DEG })) }],
     }),
   ];
-  await Promise.all(charts.map((c) => (c.sources[0].series.length ? c.load() : null)));
+  await Promise.all(charts.map((c) => c.load()));
   const box = el("section", "chart");
   box.append(el("h3", "", "Current diagnosis"));
   const probs = Object.entries(diag.surface_fault_probabilities || {}).map(([s, p]) => [s, fmt(p, 3), fmt((diag.deflection_estimates_deg || {})[s], 3)]);
@@ -186,7 +185,6 @@ async function stmmaePlots({ grid, fetchSeries, base, act }) {
   const active = faults.active_faults.map((f) => [f.detail.component, f.detail.fault_kind, new Date(f.t_s * 1000).toISOString()]);
   box.append(el("h3", "", "Active faults"), active.length ? smallTable(["surface", "kind", "detected"], active) : el("p", "note", "none"));
   grid.append(box);
-  void cfg;
 }
 
 // ---------------------------------------------------------------- DARR + FEKF (sha_ema)
@@ -212,7 +210,7 @@ async function darrPlots({ grid, fetchSeries, base }) {
       lines: [{ value: 1, label: "nominal", color: "#8a8f98" }],
     }),
   ];
-  await Promise.all(charts.map((c) => (c.sources[0].series.length ? c.load() : null)));
+  await Promise.all(charts.map((c) => c.load()));
   const box = el("section", "chart");
   box.append(el("h3", "", "Coherence vector"));
   box.append(diag.coherence_vector ? smallTable(names.length ? names : diag.coherence_vector.map((_, i) => `r${i + 1}`), [diag.coherence_vector]) : el("p", "note", "no diagnosis yet"));

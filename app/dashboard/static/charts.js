@@ -80,6 +80,11 @@ export class SeriesChart {
   }
 
   async load(from_s, to_s) {
+    if (!this.specs.flat().length) { // nothing to ask for yet (e.g. no diagnosis names the series)
+      this.body.replaceChildren(el("div", "empty", "no data yet"));
+      this.card.dataset.points = "0";
+      return;
+    }
     const points = width(this.body);
     const ticket = ++this.pending;
     const parts = await Promise.all(this.sources.map((s) => this.fetchSeries({ ...s.params, names: s.series.map((x) => x.name).join(","), from_s, to_s, points })));
