@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 from sqlalchemy.orm import Session
 
-from app.codec import decode_columns
+from app.codec import column_names, decode_columns
 from app.errors import InvalidQuery, NotFound
 from app.health import repository
 from app.health.downsample import min_max_downsample
@@ -141,7 +141,7 @@ def _column_blocks(
     times: list[np.ndarray] = []
     columns: dict[str, list[np.ndarray]] = {}
     for payload in payloads:
-        cols = decode_columns(payload)
+        cols = decode_columns(payload, None if names is None else {TIME_COLUMN, *names})
         t = cols.pop(TIME_COLUMN)
         keep: slice | np.ndarray = slice(None)
         if (from_s is not None and t[0] < from_s) or (to_s is not None and t[-1] > to_s):
@@ -149,7 +149,8 @@ def _column_blocks(
         times.append(t[keep])
         for name in names if names is not None else cols:
             if name not in cols:
-                raise NotFound(f"{what} has no series {name!r} (it has {', '.join(cols)})")
+                have = [c for c in column_names(payload) if c != TIME_COLUMN]
+                raise NotFound(f"{what} has no series {name!r} (it has {', '.join(have)})")
             columns.setdefault(name, []).append(cols[name][keep])
     t_all = np.concatenate(times) if times else np.empty(0)
     return t_all, {k: np.concatenate(v) for k, v in columns.items()}

@@ -86,3 +86,16 @@ def test_series_of_the_logged_telemetry_share_the_outputs_time_stamps(api: Api) 
     assert np.nanmax(got) == np.nanmax(s.voltage) and np.nanmin(got) == np.nanmin(s.voltage)
     r = api.get(SERIES, params={"source": "outputs"})
     assert r.status_code == 400 and r.json()["error"] == "InvalidQuery"
+
+
+def test_decoding_some_columns_of_a_block_gives_the_same_values() -> None:
+    from app.codec import column_names, decode_columns, encode_columns
+
+    rng = np.random.default_rng(3)
+    cols = {"t": np.arange(50.0), **{f"c{i}": rng.normal(size=50) for i in range(6)}}
+    data = encode_columns(cols)
+    some = decode_columns(data, {"t", "c4", "absent"})
+    assert sorted(some) == ["c4", "t"]
+    np.testing.assert_array_equal(some["c4"], cols["c4"])
+    assert some["c4"].flags.writeable
+    assert sorted(decode_columns(data)) == sorted(cols) and column_names(data) == list(cols)
