@@ -99,6 +99,7 @@ export class Board {
       tr.dataset.tail = a.tail;
       const th = el("th");
       th.append(el("div", "", a.tail), statusChip(a.status));
+      if (typeof a.open_alarms === "number" && a.open_alarms > 0) th.append(el("div", "alarms", `${a.open_alarms} open alarm${a.open_alarms > 1 ? "s" : ""}`));
       tr.append(th);
       for (const c of columns) {
         const x = a.actuators.find((y) => y.actuator_id === c);
