@@ -99,7 +99,8 @@ def _shoot(url: str, out: Path) -> list[Path]:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--out", type=Path, default=OUT)
-    parser.add_argument("--duration-s", type=float, default=120.0, help="stream seconds simulated (120)")
+    # 140 s: the seed paper's third surface fault (rudder stuck, 130-160 s) is active at the end.
+    parser.add_argument("--duration-s", type=float, default=140.0, help="stream seconds simulated (140)")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
