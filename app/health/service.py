@@ -166,8 +166,7 @@ def _outputs_columns(
 
 
 def _telemetry_columns(
-    session: Session, act: Actuator, estimator: str, from_s: float | None, to_s: float | None,
-    names: list[str] | None,
+    session: Session, act: Actuator, from_s: float | None, to_s: float | None, names: list[str] | None,
 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """The channels of the logged batches in [from_s, to_s] that still hold their samples."""
     rows = repository.telemetry_batches(session, act.id, from_s, to_s)
@@ -209,10 +208,10 @@ def series(
     to_s: float | None,
     points: int,
 ) -> dict[str, Any]:
-    """Outputs or health indicators of one estimator over [from_s, to_s], min/max downsampled
-    to ``points`` (docs/api.md, "Plotting series")."""
+    """Outputs or health indicators of one estimator, or the logged telemetry, over
+    [from_s, to_s], min/max downsampled to ``points`` (docs/api.md, "Plotting series")."""
     if source == "telemetry":
-        t, cols = _telemetry_columns(session, act, "", from_s, to_s, names)
+        t, cols = _telemetry_columns(session, act, from_s, to_s, names)
     elif estimator is None:
         raise InvalidQuery(f"source {source!r} needs estimator=<name>")
     else:
