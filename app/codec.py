@@ -3,7 +3,7 @@ an Arrow IPC stream with zstd-compressed float64 buffers."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 
 import numpy as np
 import pyarrow as pa
@@ -19,8 +19,20 @@ def encode_columns(columns: Mapping[str, np.ndarray]) -> bytes:
     return bytes(sink.getvalue().to_pybytes())
 
 
-def decode_columns(data: bytes) -> dict[str, np.ndarray]:
-    table = pa.ipc.open_stream(pa.py_buffer(data)).read_all()
+def column_names(data: bytes) -> list[str]:
+    """The names of a block's columns (reads the schema only)."""
+    return list(pa.ipc.open_stream(pa.py_buffer(data)).schema.names)
+
+
+def decode_columns(data: bytes, names: Collection[str] | None = None) -> dict[str, np.ndarray]:
+    """A block's columns; with ``names``, only those of them the block has (the others are not
+    even decompressed: a plot of 2 of 35 outputs reads 2)."""
+    buf = pa.py_buffer(data)
+    options = None
+    if names is not None:
+        schema = pa.ipc.open_stream(buf).schema
+        options = pa.ipc.IpcReadOptions(included_fields=[i for i, n in enumerate(schema.names) if n in names])
+    table = pa.ipc.open_stream(buf, options=options).read_all()
     # Writeable copies: numba compiles read-only arrays as a separate type, which the start-up
     # warm-up does not cover, so a zero-copy view here would make the first apply compile.
     return {

@@ -81,6 +81,12 @@ class InvalidConfig(DomainError):
     status_code = 422
 
 
+class InvalidQuery(DomainError):
+    """A query string that is well-formed but asks for something that does not fit together."""
+
+    status_code = 400
+
+
 class StreamFailed(DomainError):
     """The stream is marked failed: its batches are logged but no longer applied."""
 

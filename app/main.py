@@ -14,6 +14,7 @@ from app.alarms import router as alarms_router
 from app.auth import router as auth_router
 from app.auth.service import SCOPES, ensure_key
 from app.config import Settings, get_settings
+from app.dashboard import router as dashboard_router
 from app.db import Database
 from app.errors import install_handlers
 from app.events import router as events_router
@@ -111,4 +112,5 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         webhooks_router,
     ):
         app.include_router(module.router)
+    dashboard_router.install(app)
     return app

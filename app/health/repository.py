@@ -15,6 +15,7 @@ from app.models import (
     RulEstimateRow,
     SampleOutputRow,
     Stream,
+    TelemetryBatch,
 )
 from app.pagination import Order, after_key, order_by
 
@@ -54,10 +55,11 @@ def latest_window(session: Session, actuator_pk: int, estimator: str, baseline: 
     )
 
 
-def _page(stmt: Any, cols: Sequence[Any], after: Sequence[Any] | None, order: Order, limit: int) -> Any:
+def _page(stmt: Any, cols: Sequence[Any], after: Sequence[Any] | None, order: Order, limit: int | None) -> Any:
     if after is not None:
         stmt = stmt.where(after_key(cols, after, order))
-    return stmt.order_by(*order_by(cols, order)).limit(limit)
+    stmt = stmt.order_by(*order_by(cols, order))
+    return stmt if limit is None else stmt.limit(limit)
 
 
 def windows(
@@ -67,11 +69,12 @@ def windows(
     from_s: float | None,
     to_s: float | None,
     *,
-    after: Sequence[Any] | None,
-    order: Order,
-    limit: int,
+    after: Sequence[Any] | None = None,
+    order: Order = "asc",
+    limit: int | None,
 ) -> list[HealthWindowRow]:
-    """Windows whose span meets [from_s, to_s], by (t_end_s, id) in ``order``, after ``after``."""
+    """Windows whose span meets [from_s, to_s], by (t_end_s, id) in ``order``, after ``after``
+    (at most ``limit``; None: all)."""
     stmt = select(HealthWindowRow).where(HealthWindowRow.actuator_pk == actuator_pk)
     if estimator is not None:
         stmt = stmt.where(HealthWindowRow.estimator == estimator)
@@ -156,3 +159,17 @@ def ruls(
     if to_s is not None:
         stmt = stmt.where(RulEstimateRow.t_s <= to_s)
     return list(session.scalars(_page(stmt, [RulEstimateRow.t_s, RulEstimateRow.id], after, order, limit)))
+
+
+def telemetry_batches(
+    session: Session, actuator_pk: int, from_s: float | None, to_s: float | None
+) -> Iterator[TelemetryBatch]:
+    """Logged batches still holding their samples that meet [from_s, to_s], in stream order."""
+    stmt = select(TelemetryBatch).where(
+        TelemetryBatch.actuator_pk == actuator_pk, TelemetryBatch.payload.is_not(None)
+    )
+    if from_s is not None:
+        stmt = stmt.where(TelemetryBatch.t_last_s >= from_s)
+    if to_s is not None:
+        stmt = stmt.where(TelemetryBatch.t_first_s <= to_s)
+    return iter(session.scalars(stmt.order_by(TelemetryBatch.seq)))

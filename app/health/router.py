@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from contextlib import ExitStack
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Query
 from fastapi.responses import StreamingResponse
@@ -140,4 +140,33 @@ def actuator_rul(
     )
     return schemas.ActuatorRul.model_validate(
         {**body, "truncated": last is not None, "next_cursor": _cursor("rul", order, last)}
+    )
+
+
+@router.get(f"{ACT}/series", response_model=schemas.SeriesPublic, responses=error_responses(400, 401, 403, 404))
+def actuator_series(
+    act: ActuatorDep,
+    s: ReadSessionDep,
+    estimator: Annotated[str | None, Query(description="Estimator (needed for outputs and health)")] = None,
+    source: Annotated[
+        Literal["outputs", "health", "telemetry"],
+        Query(
+            description="`outputs`: per-sample outputs; `health`: health-window indicators at each "
+            "window's end; `telemetry`: the channels of the batches the log still holds"
+        ),
+    ] = "outputs",
+    names: Annotated[
+        str | None, Query(description="Comma-separated series to return (default: all of the source)")
+    ] = None,
+    from_s: StreamTime = None,
+    to_s: StreamTime = None,
+    points: Annotated[int, Query(ge=2, le=20_000, description="Width of the plot in pixels")] = 1000,
+) -> schemas.SeriesPublic:
+    """A series for plotting: at most `points` samples of the outputs (or health indicators) of
+    one estimator, or of the logged telemetry, over [from_s, to_s]. Longer spans keep, per `points / 2` equal time buckets,
+    each series' minimum and maximum in their order, so the plot shows every peak and trough;
+    zooming in asks for a shorter span and gets finer data."""
+    wanted = None if names is None else [n for n in (p.strip() for p in names.split(",")) if n]
+    return schemas.SeriesPublic.model_validate(
+        service.plot_series(s, act, estimator, source, wanted, from_s, to_s, points)
     )

@@ -137,3 +137,17 @@ class ActuatorRul(BaseModel):
     items: list[RulEstimatePublic] = Field(description="Prognoses in [from_s, to_s], in the order asked for")
     truncated: bool = Field(description="True when more prognoses follow (see next_cursor)")
     next_cursor: str | None = Field(default=None, description=CURSOR_DOC)
+
+
+class SeriesPublic(BaseModel):
+    estimator: str | None
+    source: str = Field(description="`outputs`, `health` or `telemetry`")
+    from_s: float | None = Field(description="Start of the span drawn (the first sample's time by default)")
+    to_s: float | None = Field(description="End of the span drawn (the last sample's time by default)")
+    n_samples: int = Field(description="Samples (or windows) in the span before downsampling")
+    reduced: bool = Field(
+        description="True when the span held more than `points` samples and per-bucket minima "
+        "and maxima replace them"
+    )
+    t_s: list[float]
+    series: dict[str, list[float | None]]

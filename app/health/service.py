@@ -11,10 +11,11 @@ import pyarrow as pa
 from sqlalchemy.orm import Session
 
 from app import series
-from app.codec import decode_columns
-from app.errors import NotFound
+from app.codec import column_names, decode_columns
+from app.errors import InvalidQuery, NotFound
 from app.fleet import service as fleet
 from app.health import repository, vocabulary
+from app.health.downsample import min_max_downsample
 from app.ingest import TIME_COLUMN
 from app.models import Actuator
 from app.pagination import Order
@@ -215,3 +216,107 @@ def rul(
         "items": [_rul_item(r, usage) for r in rows[:limit]],
     }
     return body, ([rows[limit - 1].t_s, rows[limit - 1].id] if len(rows) > limit else None)
+
+
+def _column_blocks(
+    payloads: Iterator[bytes], what: str, from_s: float | None, to_s: float | None, names: list[str] | None,
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """The columns of stored blocks (outputs or telemetry) cut to [from_s, to_s], joined."""
+    times: list[np.ndarray] = []
+    columns: dict[str, list[np.ndarray]] = {}
+    for payload in payloads:
+        cols = decode_columns(payload, None if names is None else {TIME_COLUMN, *names})
+        t = cols.pop(TIME_COLUMN)
+        keep: slice | np.ndarray = slice(None)
+        if (from_s is not None and t[0] < from_s) or (to_s is not None and t[-1] > to_s):
+            keep = (t >= (-np.inf if from_s is None else from_s)) & (t <= (np.inf if to_s is None else to_s))
+        times.append(t[keep])
+        for name in names if names is not None else cols:
+            if name not in cols:
+                have = [c for c in column_names(payload) if c != TIME_COLUMN]
+                raise NotFound(f"{what} has no series {name!r} (it has {', '.join(have)})")
+            columns.setdefault(name, []).append(cols[name][keep])
+    t_all = np.concatenate(times) if times else np.empty(0)
+    return t_all, {k: np.concatenate(v) for k, v in columns.items()}
+
+
+def _outputs_columns(
+    session: Session, act: Actuator, estimator: str, from_s: float | None, to_s: float | None,
+    names: list[str] | None,
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Every per-sample output of ``estimator`` in [from_s, to_s] (only ``names`` if given)."""
+    rows = repository.sample_outputs(session, act.id, estimator, from_s, to_s)
+    return _column_blocks((r.payload for r in rows), f"estimator {estimator!r}", from_s, to_s, names)
+
+
+def _telemetry_columns(
+    session: Session, act: Actuator, from_s: float | None, to_s: float | None, names: list[str] | None,
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """The channels of the logged batches in [from_s, to_s] that still hold their samples."""
+    rows = repository.telemetry_batches(session, act.id, from_s, to_s)
+    payloads = (r.payload for r in rows if r.payload is not None)
+    return _column_blocks(payloads, f"actuator {act.actuator_id!r}", from_s, to_s, names)
+
+
+def _health_columns(
+    session: Session, act: Actuator, estimator: str, from_s: float | None, to_s: float | None,
+    names: list[str] | None,
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """The health indicators of ``estimator``'s windows ending in [from_s, to_s], at each
+    window's end."""
+    rows = [
+        r for r in repository.windows(session, act.id, estimator, from_s, to_s, limit=None)
+        if (from_s is None or r.t_end_s >= from_s) and (to_s is None or r.t_end_s <= to_s)
+    ]
+    found = sorted({k for r in rows for k in r.indicators})
+    for name in names or []:
+        if rows and name not in found:
+            raise NotFound(f"estimator {estimator!r} has no health indicator {name!r} (it has {', '.join(found)})")
+    wanted = names if names is not None else found
+    t = np.array([r.t_end_s for r in rows], dtype=np.float64)
+    cols = {
+        name: np.array([np.nan if r.indicators.get(name) is None else r.indicators[name] for r in rows],
+                       dtype=np.float64)
+        for name in wanted
+    }
+    return t, cols
+
+
+def plot_series(
+    session: Session,
+    act: Actuator,
+    estimator: str | None,
+    source: str,
+    names: list[str] | None,
+    from_s: float | None,
+    to_s: float | None,
+    points: int,
+) -> dict[str, Any]:
+    """Outputs or health indicators of one estimator, or the logged telemetry, over
+    [from_s, to_s], min/max downsampled to ``points`` (docs/api.md, "Plotting series")."""
+    if source == "telemetry":
+        t, cols = _telemetry_columns(session, act, from_s, to_s, names)
+    elif estimator is None:
+        raise InvalidQuery(f"source {source!r} needs estimator=<name>")
+    else:
+        _check_estimator(session, act, estimator)
+        read = _outputs_columns if source == "outputs" else _health_columns
+        t, cols = read(session, act, estimator, from_s, to_s, names)
+    n = len(t)
+    span_from = from_s if from_s is not None else (float(t[0]) if n else None)
+    span_to = to_s if to_s is not None else (float(t[-1]) if n else None)
+    if n:
+        d = min_max_downsample(t, cols, points, span_from, span_to)
+        t, cols, reduced = d.t_s, d.series, d.reduced
+    else:
+        reduced = False
+    return {
+        "estimator": estimator,
+        "source": source,
+        "from_s": span_from,
+        "to_s": span_to,
+        "n_samples": n,
+        "reduced": reduced,
+        "t_s": t.tolist(),
+        "series": {k: _as_list(v) for k, v in cols.items()},
+    }
