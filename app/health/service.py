@@ -299,7 +299,7 @@ def plot_series(
     elif estimator is None:
         raise InvalidQuery(f"source {source!r} needs estimator=<name>")
     else:
-        _check_estimator(session, act, estimator)
+        check_estimator(session, act, estimator)
         read = _outputs_columns if source == "outputs" else _health_columns
         t, cols = read(session, act, estimator, from_s, to_s, names)
     n = len(t)

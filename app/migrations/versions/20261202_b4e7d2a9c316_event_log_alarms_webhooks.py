@@ -11,7 +11,7 @@ import sqlalchemy as sa
 from alembic import op
 
 revision: str = "b4e7d2a9c316"
-down_revision: str | None = "7c3e9a41d2b5"
+down_revision: str | None = "b7e2d4f1a9c3"
 branch_labels: str | Sequence[str] | None = None
 depends_on: str | Sequence[str] | None = None
 
