@@ -37,7 +37,7 @@ OPERATIONS = [
     ("GET", r"/outputs$"),
     ("GET", r"/outputs/export$"),
     ("GET", r"/health/history$"),
-    ("GET", r"/events$"),
+    ("GET", r"/actuators/\{actuator_id\}/events$"),
     ("GET", r"/rul$"),
     ("GET", r"^/v1/fleet/health$"),
 ]
