@@ -54,6 +54,7 @@ bench: $(STAMP)
 	$(BIN)/python bench/bench_darr_fekf.py
 	$(BIN)/python bench/bench_ingest.py
 	$(BIN)/python bench/bench_ws.py
+	$(BIN)/python bench/bench_events.py
 
 ## Regenerate docs/validation.md from the simulators and the FLEA runs.
 validate: $(STAMP)
