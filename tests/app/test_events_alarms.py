@@ -205,3 +205,24 @@ def test_a_surface_fault_raises_an_alarm_that_clears_with_the_fault(api: Api) ->
     cleared = next(e for e in _events(api, limit=1000)["items"] if e["id"] == after["cleared_event_id"])
     assert cleared["type"] == "alarm_cleared" and cleared["alarm"]["subject"] == "elevator_left"
     assert api.get("/v1/alarms?status=open&cause=fault").json()["items"] == []
+
+
+def test_fleet_subscribers_hear_of_an_acknowledgement_at_once(db_url: str) -> None:
+    from fastapi.testclient import TestClient
+
+    from app.main import create_app
+    from tests.app.conftest import ADMIN_KEY, make_settings
+
+    # A poll far beyond the test's time: only the wake-up after the commit can bring the event.
+    with TestClient(create_app(make_settings(db_url, events_poll_s=600.0))) as client:
+        api = Api(client)
+        api.setup_actuator("N1", "ema1")
+        t, ch = _flat()
+        assert api.send_json("N1", "ema1", "b1", t, ch).status_code == 202
+        aid = api.get("/v1/alarms").json()["items"][0]["id"]
+        headers = {"Authorization": f"Bearer {ADMIN_KEY}"}
+        with client.websocket_connect("/v1/fleet/events?types=alarm_acknowledged", headers=headers) as ws:
+            assert ws.receive_json()["type"] == "ready"
+            assert api.post(f"/v1/alarms/{aid}/acknowledge", json={"comment": "seen"}).status_code == 200
+            ev = ws.receive_json()
+        assert (ev["type"], ev["alarm"]["id"], ev["alarm"]["acknowledge_comment"]) == ("alarm_acknowledged", aid, "seen")
