@@ -67,6 +67,7 @@ bench: $(STAMP) $(UPLOT)
 	$(BIN)/python bench/bench_ingest.py
 	$(BIN)/python bench/bench_ws.py
 	$(BIN)/python bench/bench_series.py
+	$(BIN)/python bench/bench_events.py
 
 ## Regenerate docs/validation.md from the simulators and the FLEA runs.
 validate: $(STAMP)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, Path, Query
+from fastapi import APIRouter, BackgroundTasks, Path, Query, Request
 
 from app.alarms import schemas, service
 from app.alarms.repository import AlarmFilter
@@ -14,6 +14,12 @@ from app.errors import error_responses
 from app.telemetry.validation import Identifier
 
 router = APIRouter(prefix="/v1", tags=["alarms"])
+
+
+def _wake_subscribers(request: Request, operator_id: int) -> None:
+    """After the commit: this process's fleet subscribers read the new event at once (those
+    of other processes find it at their next poll)."""
+    request.app.state.processor.hub.publish_fleet([{"_operator_id": operator_id, "type": "alarm"}])
 AlarmId = Annotated[int, Path(ge=1, le=2**53)]
 
 
@@ -54,13 +60,18 @@ def get_alarm(alarm_id: AlarmId, s: ReadSessionDep, p: ReadDep) -> schemas.Alarm
     responses=error_responses(401, 403, 404, 409, 422),
 )
 def acknowledge_alarm(
-    alarm_id: AlarmId, s: WriteSessionDep, p: ReadDep, body: schemas.AlarmAction | None = None
+    alarm_id: AlarmId,
+    request: Request,
+    tasks: BackgroundTasks,
+    s: WriteSessionDep,
+    p: ReadDep,
+    body: schemas.AlarmAction | None = None,
 ) -> schemas.AlarmPublic:
     """active -> acknowledged (409 otherwise), recording who, when and the comment."""
     body = body or schemas.AlarmAction()
-    return schemas.AlarmPublic.model_validate(
-        service.acknowledge(s, p, alarm_id, body.comment, body.by)
-    )
+    alarm = service.acknowledge(s, p, alarm_id, body.comment, body.by)
+    tasks.add_task(_wake_subscribers, request, p.operator_id)
+    return schemas.AlarmPublic.model_validate(alarm)
 
 
 @router.post(
@@ -69,9 +80,16 @@ def acknowledge_alarm(
     responses=error_responses(401, 403, 404, 409, 422),
 )
 def clear_alarm(
-    alarm_id: AlarmId, s: WriteSessionDep, p: ReadDep, body: schemas.AlarmAction | None = None
+    alarm_id: AlarmId,
+    request: Request,
+    tasks: BackgroundTasks,
+    s: WriteSessionDep,
+    p: ReadDep,
+    body: schemas.AlarmAction | None = None,
 ) -> schemas.AlarmPublic:
     """active or acknowledged -> cleared (409 when cleared already), recording who, when and
     the comment. An alarm also clears itself when its cause ends (`cleared_by: rule`)."""
     body = body or schemas.AlarmAction()
-    return schemas.AlarmPublic.model_validate(service.clear(s, p, alarm_id, body.comment, body.by))
+    alarm = service.clear(s, p, alarm_id, body.comment, body.by)
+    tasks.add_task(_wake_subscribers, request, p.operator_id)
+    return schemas.AlarmPublic.model_validate(alarm)

@@ -168,3 +168,61 @@ def test_events_commit_with_the_apply_or_not_at_all(api_noproc: Api, monkeypatch
     assert apply() is not None
     assert api.health()["last_applied_seq"] == 1
     assert [e["type"] for e in _events(api)["items"]] == ["status_changed", "alarm_raised"]
+
+
+def test_a_surface_fault_raises_an_alarm_that_clears_with_the_fault(api: Api) -> None:
+    import orjson
+
+    from estimators.simulators.uav_closed_loop import SurfaceFault, simulate_flight
+
+    api.post("/v1/aircraft", json={"tail": "UAV1"})
+    r = api.post("/v1/aircraft/UAV1/actuators", json={"actuator_id": "fcu", "kind": "flight_controls"})
+    assert r.status_code == 201, r.text
+    fault = SurfaceFault("elevator_left", 20.0, 35.0, "stuck", position_deg=6.0)
+    t, chans, _ = simulate_flight(60.0, faults=(fault,), seed=11)
+
+    def send(lo: float, hi: float) -> None:
+        for k, start in enumerate(np.arange(lo, hi, 5.0)):
+            part = (t >= start) & (t < start + 5.0)
+            body = {"batch_id": f"b{lo:.0f}-{k}", "t": t[part].tolist(),
+                    "channels": {c: v[part].tolist() for c, v in chans.items()}}
+            r = api.post("/v1/aircraft/UAV1/actuators/fcu/telemetry?wait=60", content=orjson.dumps(body),
+                         headers={"content-type": "application/json"})
+            assert r.status_code == 202, r.text
+
+    send(0.0, 30.0)  # into the fault
+    open_ = api.get("/v1/alarms?status=open&cause=fault").json()
+    (alarm,) = open_["items"]
+    assert (alarm["subject"], alarm["severity"], alarm["estimator"]) == ("elevator_left", "major", "stmmae")
+    raised = next(e for e in _events(api, limit=1000)["items"] if e["id"] == alarm["raised_event_id"])
+    assert raised["type"] == "fault_detected" and raised["detail"]["component"] == "elevator_left"
+    board = next(a for a in api.get("/v1/fleet/health").json()["aircraft"] if a["tail"] == "UAV1")
+    assert board["open_alarms"] == api.get("/v1/alarms?status=open&tail=UAV1").json()["counts"]["open"] >= 1
+
+    send(30.0, 60.0)  # the surface works again from 35 s
+    after = api.get(f"/v1/alarms/{alarm['id']}").json()
+    assert (after["status"], after["cleared_by"]) == ("cleared", "rule")
+    cleared = next(e for e in _events(api, limit=1000)["items"] if e["id"] == after["cleared_event_id"])
+    assert cleared["type"] == "alarm_cleared" and cleared["alarm"]["subject"] == "elevator_left"
+    assert api.get("/v1/alarms?status=open&cause=fault").json()["items"] == []
+
+
+def test_fleet_subscribers_hear_of_an_acknowledgement_at_once(db_url: str) -> None:
+    from fastapi.testclient import TestClient
+
+    from app.main import create_app
+    from tests.app.conftest import ADMIN_KEY, make_settings
+
+    # A poll far beyond the test's time: only the wake-up after the commit can bring the event.
+    with TestClient(create_app(make_settings(db_url, events_poll_s=600.0))) as client:
+        api = Api(client)
+        api.setup_actuator("N1", "ema1")
+        t, ch = _flat()
+        assert api.send_json("N1", "ema1", "b1", t, ch).status_code == 202
+        aid = api.get("/v1/alarms").json()["items"][0]["id"]
+        headers = {"Authorization": f"Bearer {ADMIN_KEY}"}
+        with client.websocket_connect("/v1/fleet/events?types=alarm_acknowledged", headers=headers) as ws:
+            assert ws.receive_json()["type"] == "ready"
+            assert api.post(f"/v1/alarms/{aid}/acknowledge", json={"comment": "seen"}).status_code == 200
+            ev = ws.receive_json()
+        assert (ev["type"], ev["alarm"]["id"], ev["alarm"]["acknowledge_comment"]) == ("alarm_acknowledged", aid, "seen")
