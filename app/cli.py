@@ -105,7 +105,7 @@ def _demo_feeder(url: str, key: str, stop: threading.Event) -> None:
 
 
 def cmd_keys(args: argparse.Namespace) -> int:
-    from app.auth.service import create_key, list_keys, parse_scopes, revoke_key
+    from app.auth.service import create_key, list_keys, parse_scopes, revoke_key, set_scopes
     from app.db import Database
 
     db = Database(_settings().database_url)
@@ -127,6 +127,12 @@ def cmd_keys(args: argparse.Namespace) -> int:
                     print(f"no key {args.id}", file=sys.stderr)
                     return 1
                 print(f"revoked key {args.id}")
+        elif args.keys_cmd == "scopes":
+            with db.write() as s:
+                if not set_scopes(s, args.id, parse_scopes(args.scopes)):
+                    print(f"no key {args.id}", file=sys.stderr)
+                    return 1
+                print(f"key {args.id} now has scopes {','.join(parse_scopes(args.scopes))}")
     finally:
         db.dispose()
     return 0
@@ -195,6 +201,9 @@ def build_parser() -> argparse.ArgumentParser:
     ks.add_parser("list", help="list keys (never the keys themselves)")
     kr = ks.add_parser("revoke", help="revoke a key by id")
     kr.add_argument("id", type=int)
+    kq = ks.add_parser("scopes", help="replace a key's scopes (open connections that lose theirs close)")
+    kq.add_argument("id", type=int)
+    kq.add_argument("scopes", help="comma-separated: ingest,read,admin")
     sp.set_defaults(func=cmd_keys)
 
     sp = sub.add_parser("streams", help="streams marked failed (no longer applied)")

@@ -53,8 +53,15 @@ class Settings(BaseSettings):
     ws_ping_interval_s: float = Field(default=20.0, gt=0)
     ws_ping_timeout_s: float = Field(default=20.0, gt=0)
     ws_result_poll_s: float = Field(default=1.0, gt=0)
+    # How often an open WebSocket re-reads its key: a revoked key or a lost scope closes the
+    # connection (1008) within this time, whichever process revoked it.
+    ws_auth_recheck_s: float = Field(default=5.0, gt=0)
     socket_send_buffer_bytes: int | None = Field(default=None, gt=0)
     shutdown_timeout_s: float = Field(default=10.0, gt=0)
+    # /metrics: "key" needs a key with the read scope, "open" needs none, "off" answers 404.
+    metrics_access: Literal["off", "key", "open"] = "key"
+    # Retry-After (seconds) of a 503 when the database is unreachable or out of space.
+    storage_retry_after_s: int = Field(default=5, gt=0)
 
     @field_validator("bootstrap_admin_key")
     @classmethod

@@ -6,7 +6,8 @@ log holds for them: durable before ack, exactly once, in order, applied after a 
 protocol is documented in docs/api.md ("Streaming").
 
 Close codes: 1003 a message that is not a frame; 1007 a frame whose samples are invalid; 1008
-authentication, authorization or a frame the log refuses (client_seq or time not after the last,
+authentication, authorization (also a key revoked or stripped of the scope while the connection
+is open, seen within ``ws_auth_recheck_s``) or a frame the log refuses (client_seq or time not after the last,
 same client_seq with other samples); 1009 a frame above ``ws_max_frame_bytes`` (by the server);
 1011 the stream is marked failed (its frames are logged but not applied); 1013 a fleet
 subscriber too slow for its bounded queue.
@@ -24,6 +25,7 @@ from typing import Any
 import orjson
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from prometheus_client import Counter, Gauge
+from sqlalchemy.exc import SQLAlchemyError
 from starlette.concurrency import run_in_threadpool
 from starlette.websockets import WebSocketState
 
@@ -44,6 +46,9 @@ router = APIRouter(prefix="/v1")
 WS_CONNECTIONS = Gauge("fleethealth_ws_connections", "Open WebSocket connections", ["endpoint"])
 WS_FRAMES = Counter("fleethealth_ws_frames_total", "Streamed frames by outcome", ["outcome"])
 WS_DROPPED = Counter("fleethealth_ws_subscribers_dropped_total", "Fleet subscribers dropped as too slow")
+WS_KEY_CLOSES = Counter(
+    "fleethealth_ws_key_closes_total", "WebSockets closed because their key was revoked or lost its scope", ["error"]
+)
 
 CLOSE_UNSUPPORTED = 1003
 CLOSE_INVALID = 1007
@@ -94,6 +99,30 @@ async def _authenticate(ws: WebSocket, db: Database, settings: Settings, scope: 
         await _refuse(ws, CLOSE_POLICY, exc.name, exc.detail)
         return None
     return principal
+
+
+async def _guard_key(
+    ws: WebSocket, db: Database, settings: Settings, principal: Principal, scope: str, lock: asyncio.Lock
+) -> None:
+    """Re-read the connection's key every ``ws_auth_recheck_s``; once it is revoked or lacks
+    ``scope``, close with 1008 and return. Reading the database (not an in-process notice)
+    makes a revocation by any process, or by the CLI, count."""
+    while True:
+        await asyncio.sleep(settings.ws_auth_recheck_s)
+        try:
+            await run_in_threadpool(service.recheck_key, db, principal, scope)
+        except DomainError as exc:
+            WS_KEY_CLOSES.labels(exc.name).inc()
+
+            async def close(err: DomainError = exc) -> None:
+                async with lock:  # never in the middle of another message
+                    await _refuse(ws, CLOSE_POLICY, err.name, err.detail)
+
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(close(), settings.ws_close_timeout_s)
+            return
+        except SQLAlchemyError as exc:  # the database is unreachable now: check again later
+            log.warning("could not re-check the key of an open WebSocket: %s", type(exc).__name__)
 
 
 # ----------------------------------------------------------------------------- ingest stream
@@ -304,11 +333,13 @@ async def stream(ws: WebSocket, tail: str, actuator_id: str) -> None:
             conn.inflight_added.set()
             processor.notify(pk)
         reader = asyncio.create_task(conn.read_frames())
-        done, _ = await asyncio.wait({reader, pusher}, return_when=asyncio.FIRST_COMPLETED)
+        guard = asyncio.create_task(_guard_key(ws, db, settings, principal, "ingest", conn.lock))
+        done, _ = await asyncio.wait({reader, pusher, guard}, return_when=asyncio.FIRST_COMPLETED)
         for task in done:
             if task.exception() is not None and not isinstance(task.exception(), WebSocketDisconnect):
                 log.error("stream connection failed", exc_info=task.exception())
         reader.cancel()
+        guard.cancel()
     except WebSocketDisconnect:
         log.debug("stream peer left during the handshake messages")
     finally:
@@ -345,10 +376,10 @@ async def fleet_events(ws: WebSocket) -> None:
     WS_CONNECTIONS.labels("fleet").inc()
 
     async def sender() -> None:
-        await ws.send_text(_dumps({"type": "ready", "tails": tails or None, "types": sorted(types)}))
+        await _send(ws, send_lock, {"type": "ready", "tails": tails or None, "types": sorted(types)})
         while True:
             ev = await sub.queue.get()
-            await ws.send_text(_dumps(public(ev)))
+            await _send(ws, send_lock, public(ev))
 
     async def watch_overflow() -> None:
         while not sub.overflowed:
@@ -359,7 +390,11 @@ async def fleet_events(ws: WebSocket) -> None:
         while (await ws.receive())["type"] != "websocket.disconnect":
             pass  # subscribers have nothing to say; anything they send is ignored
 
-    tasks = [asyncio.create_task(c()) for c in (sender, watch_overflow, watch_peer)]
+    async def guard() -> None:
+        await _guard_key(ws, db, settings, principal, "read", send_lock)
+
+    send_lock = asyncio.Lock()
+    tasks = [asyncio.create_task(c()) for c in (sender, watch_overflow, watch_peer, guard)]
     try:
         await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
     finally:
