@@ -62,6 +62,8 @@ class Settings(BaseSettings):
     metrics_access: Literal["off", "key", "open"] = "key"
     # Retry-After (seconds) of a 503 when the database is unreachable or out of space.
     storage_retry_after_s: int = Field(default=5, gt=0)
+    # /readyz is not ready while the file system of a SQLite database has less free space.
+    storage_min_free_bytes: int = Field(default=64 * 1024 * 1024, ge=0)
 
     @field_validator("bootstrap_admin_key")
     @classmethod

@@ -14,7 +14,7 @@ from app.auth import router as auth_router
 from app.auth.service import SCOPES, ensure_key
 from app.config import Settings, get_settings
 from app.db import Database
-from app.errors import install_handlers
+from app.errors import document_errors, install_handlers
 from app.faults import router as faults_router
 from app.fleet import router as fleet_router
 from app.health import router as health_router
@@ -36,7 +36,9 @@ Health monitoring of aircraft actuators across a fleet: telemetry ingest per tai
 stateful estimators per stream, health indicators, remaining useful life and fault isolation.
 
 Authenticate with `Authorization: Bearer <key>`. Errors have one shape:
-`{"error": "<Name>", "detail": "<message>"}`.
+`{"error": "<Name>", "detail": "<message>"}`; for `ValidationError` (422) `detail` lists the
+issues (`{"loc", "msg", "type"}`). A 503 `StorageUnavailable` (database unreachable or out of
+space) stored nothing: retry after `Retry-After` seconds.
 """
 
 
@@ -87,6 +89,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         lifespan=lifespan,
     )
     install_handlers(app)
+    app.openapi = lambda: document_errors(FastAPI.openapi(app))  # type: ignore[method-assign]
     app.add_middleware(ControlCharGuard)
     for module in (
         system_router,

@@ -34,6 +34,7 @@ from sqlalchemy.orm import Session
 
 from app.config import Settings
 from app.db import Database
+from app.errors import STORAGE_FAULTS
 from app.processing import repository, service
 from app.processing.orchestration import StateUnreadable
 from app.processing.service import ApplyResult
@@ -215,6 +216,12 @@ class Processor:
     def _attempt_failed(self, actuator_pk: int, exc: BaseException) -> None:
         """Back off a stream whose apply raised; mark it failed after the last attempt."""
         APPLY_ERRORS.inc()
+        if isinstance(exc, STORAGE_FAULTS):
+            # The database is unreachable or full, the stream is not broken: retry (without a
+            # limit) once it is back; nothing of the attempt was committed.
+            self._retry_at[actuator_pk] = time.monotonic() + self.settings.processor_retry_backoff_s
+            log.warning("applying stream %s: storage unavailable (%s); retrying", actuator_pk, exc)
+            return
         n = self._attempts.get(actuator_pk, 0) + 1
         self._attempts[actuator_pk] = n
         if n < self.settings.processor_max_attempts:

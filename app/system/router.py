@@ -9,6 +9,8 @@ from fastapi.responses import Response
 from fastapi.security import HTTPAuthorizationCredentials
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
+from app.config import Settings
+from app.db import Database
 from app.deps import DbDep, SettingsDep, bearer, get_principal
 from app.errors import NotFound, error_responses, json_response
 from app.migrate import current_revision, head_revision
@@ -23,9 +25,31 @@ def healthz() -> dict[str, str]:
     return {"status": "ok"}
 
 
-@router.get("/readyz", responses={503: {"description": "Not ready"}})
+_READY_SCHEMA = {
+    "type": "object",
+    "properties": {
+        "status": {"type": "string"},
+        "checks": {"type": "object", "additionalProperties": {"type": "string"}},
+        "error": {"type": "string"},
+        "detail": {"type": "string"},
+    },
+    "required": ["status", "checks"],
+}
+
+
+@router.get(
+    "/readyz",
+    response_class=Response,
+    responses={
+        200: {"description": "Ready", "content": {"application/json": {"schema": _READY_SCHEMA}}},
+        503: {"description": "Not ready (the detail names the failing checks)",
+              "content": {"application/json": {"schema": _READY_SCHEMA}}},
+    },
+)
 def readyz(request: Request) -> Response:
-    """The database answers, its schema is at the head migration and the kernels are warm."""
+    """The database answers, its schema is at the head migration, it can store (no write
+    failed for lack of space or connection since the last one that committed; a SQLite file
+    system has ``storage_min_free_bytes`` free) and the kernels are warm."""
     state = request.app.state
     checks: dict[str, str] = {}
     try:
@@ -37,9 +61,31 @@ def readyz(request: Request) -> Response:
         head = head_revision(state.db.url)
         checks["database"] = "ok"
         checks["schema"] = "ok" if rev == head else f"at {rev}, head is {head}"
+    checks["storage"] = _storage_check(state.db, state.settings)
     checks["kernels"] = "ok" if state.kernels_warm.is_set() else "warming"
-    ok = all(v == "ok" for v in checks.values())
-    return json_response({"status": "ok" if ok else "not ready", "checks": checks}, status_code=200 if ok else 503)
+    failing = {k: v for k, v in checks.items() if v != "ok"}
+    if not failing:
+        return json_response({"status": "ok", "checks": checks})
+    return json_response(
+        {
+            "error": "NotReady",
+            "detail": "; ".join(f"{k}: {v}" for k, v in failing.items()),
+            "status": "not ready",
+            "checks": checks,
+        },
+        status_code=503,
+        headers={"Retry-After": str(state.settings.storage_retry_after_s)},
+    )
+
+
+def _storage_check(db: Database, settings: Settings) -> str:
+    fault = db.storage.recent_fault()
+    if fault is not None:
+        return f"last write failed: {fault}"
+    free = repository.sqlite_free_bytes(db.url)
+    if free is not None and free < settings.storage_min_free_bytes:
+        return f"disk full: {free} bytes free, below FLEETHEALTH_STORAGE_MIN_FREE_BYTES"
+    return "ok"
 
 
 def metrics_allowed(

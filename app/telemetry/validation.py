@@ -173,7 +173,8 @@ class ControlCharGuard:
             if scope["type"] == "http":
                 body = orjson.dumps({
                     "error": "ValidationError",
-                    "detail": "path and query must not contain NUL or other control characters",
+                    "detail": [{"loc": ["path"], "type": "control_characters",
+                                "msg": "path and query must not contain NUL or other control characters"}],
                 })
                 await send({
                     "type": "http.response.start",

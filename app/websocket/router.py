@@ -10,7 +10,8 @@ authentication, authorization (also a key revoked or stripped of the scope while
 is open, seen within ``ws_auth_recheck_s``) or a frame the log refuses (client_seq or time not after the last,
 same client_seq with other samples); 1009 a frame above ``ws_max_frame_bytes`` (by the server);
 1011 the stream is marked failed (its frames are logged but not applied); 1013 a fleet
-subscriber too slow for its bounded queue.
+subscriber too slow for its bounded queue, or the database unavailable (the frame was not logged;
+reconnect and send it again).
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ from starlette.websockets import WebSocketState
 from app.auth.service import Principal
 from app.config import Settings
 from app.db import Database
-from app.errors import DomainError, IdempotencyConflict, InvalidBatch, StaleBatch
+from app.errors import STORAGE_FAULTS, DomainError, IdempotencyConflict, InvalidBatch, StaleBatch
 from app.ingest import UnsupportedFrame
 from app.processing.processor import Processor
 from app.telemetry import service as telemetry
@@ -254,6 +255,15 @@ class _StreamConn:
         except (StaleBatch, IdempotencyConflict) as exc:
             WS_FRAMES.labels("refused").inc()
             await _refuse(self.ws, CLOSE_POLICY, exc.name, exc.detail)
+            return False
+        except STORAGE_FAULTS as exc:
+            # Nothing of the frame was stored; the client reconnects (1013) and sends it again.
+            WS_FRAMES.labels("storage_unavailable").inc()
+            await _refuse(
+                self.ws, CLOSE_TRY_LATER, "StorageUnavailable",
+                f"the database is unavailable ({type(exc).__name__}); the frame was not logged, retry later",
+                retry_after_s=self.settings.storage_retry_after_s,
+            )
             return False
         if ack.replayed:
             WS_FRAMES.labels("duplicate").inc()
