@@ -26,7 +26,7 @@ from typing import Any
 import orjson
 from numpy.typing import ArrayLike
 from websockets.asyncio.client import ClientConnection, connect
-from websockets.exceptions import ConnectionClosed, InvalidStatus
+from websockets.exceptions import ConnectionClosed, InvalidHandshake
 
 from fleethealth_client.arrow import ipc_stream
 from fleethealth_client.columns import TIME_COLUMN, FloatArray, as_float_columns, time_params
@@ -47,6 +47,10 @@ __all__ = [
 REFUSAL_CODES = frozenset({1003, 1007, 1008, 1009})
 #: Delays between reconnection attempts (seconds); the last one repeats.
 RECONNECT_DELAYS_S = (0.1, 0.25, 0.5, 1.0, 2.0, 5.0)
+#: Failures of a connection attempt that another attempt may not meet: refused or reset TCP,
+#: a handshake cut short or garbled (``InvalidMessage``, e.g. a server dying mid-handshake), an
+#: HTTP status instead of the upgrade (``InvalidStatus``, e.g. a proxy's 502), a timeout.
+RECONNECTABLE: tuple[type[BaseException], ...] = (OSError, EOFError, ConnectionClosed, InvalidHandshake, TimeoutError)
 #: Reconnection attempts before giving up.
 MAX_RECONNECTS = 20
 #: Seconds to open a connection and receive the server's ``ready``.
@@ -169,7 +173,7 @@ class FrameStreamer:
                 return await self._connect()
             except StreamRefused:
                 raise
-            except (OSError, ConnectionClosed, InvalidStatus, TimeoutError) as exc:
+            except RECONNECTABLE as exc:
                 if attempt >= self.max_reconnects:
                     raise ConnectionError(f"could not connect to {self.url}: {exc}") from exc
                 await asyncio.sleep(self.delays[min(attempt, len(self.delays) - 1)])
