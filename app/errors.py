@@ -146,8 +146,18 @@ def document_errors(openapi: dict[str, Any]) -> dict[str, Any]:
     """The OpenAPI as the handlers answer: every 422 in the one error shape (FastAPI's own
     ``HTTPValidationError`` is never sent), and a 503 on every operation that reads or writes
     the database."""
+    from app.telemetry.validation import NO_CONTROL_PATTERN
+
     for path, ops in openapi.get("paths", {}).items():
         for op in ops.values():
+            # ControlCharGuard refuses control characters in every path and query value.
+            for param in op.get("parameters", ()):
+                schema = param.get("schema", {})
+                if param.get("in") in ("path", "query") and schema.get("type") == "string":
+                    schema.setdefault("pattern", NO_CONTROL_PATTERN)
+                for alt in schema.get("anyOf", ()):
+                    if param.get("in") in ("path", "query") and alt.get("type") == "string":
+                        alt.setdefault("pattern", NO_CONTROL_PATTERN)
             responses = op.setdefault("responses", {})
             if "422" in responses:
                 responses["422"] = error_responses(422)[422]
