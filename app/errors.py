@@ -80,6 +80,12 @@ class StreamFailed(DomainError):
     status_code = 409
 
 
+class RewindRefused(DomainError):
+    """A stream rewind that would lose what it must re-apply."""
+
+    status_code = 409
+
+
 class StorageUnavailable(DomainError):
     """The database cannot be reached or cannot write (out of space, connection lost): nothing
     was stored; retry after ``Retry-After`` seconds."""

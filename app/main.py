@@ -19,6 +19,7 @@ from app.faults import router as faults_router
 from app.fleet import router as fleet_router
 from app.health import router as health_router
 from app.processing.processor import Processor
+from app.streams import router as streams_router
 from app.system import router as system_router
 from app.telemetry import router as telemetry_router
 from app.telemetry.validation import ControlCharGuard
@@ -96,6 +97,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         fleet_router,
         auth_router,
         telemetry_router,
+        streams_router,
         health_router,
         faults_router,
         websocket_router,

@@ -225,3 +225,24 @@ class RulEstimateRow(Base):
     assumption: Mapped[dict[str, Any]] = mapped_column(JSON)
     status: Mapped[str] = mapped_column(String(8))
     reasons: Mapped[list[str]] = mapped_column(JSON)
+
+
+class StreamRewind(Base):
+    """An admin rewind of a stream: who, when, why, and every batch it discarded (the record
+    stays when the batches are gone)."""
+
+    __tablename__ = "stream_rewinds"
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    actuator_pk: Mapped[int] = mapped_column(ForeignKey("actuators.id", ondelete="CASCADE"), index=True)
+    at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    # "api key <id>" or "cli <user>@<host>"; key_id when it came through the API.
+    actor: Mapped[str] = mapped_column(String(200))
+    key_id: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    reason: Mapped[str] = mapped_column(String(500))
+    to_seq: Mapped[int] = mapped_column(BigInteger)
+    from_logged_seq: Mapped[int] = mapped_column(BigInteger)
+    from_applied_seq: Mapped[int] = mapped_column(BigInteger)
+    # The estimators had applied a discarded batch: they restart and re-apply 1..to_seq.
+    estimators_reset: Mapped[bool] = mapped_column(Boolean)
+    # [{"seq", "batch_id", "n_samples", "t_first_s", "t_last_s", "received_at"}, ...]
+    discarded: Mapped[list[dict[str, Any]]] = mapped_column(JSON)

@@ -102,6 +102,16 @@ class Processor:
     def notify(self, actuator_pk: int) -> None:
         self._queue.put(actuator_pk)
 
+    def forget(self, actuator_pk: int) -> None:
+        """Drop what this process remembers of a stream (after an admin rewind committed: its
+        applied mark went back), and look at it again."""
+        with self._cond:
+            self._applied.pop(actuator_pk, None)
+            self._failed.pop(actuator_pk, None)
+        self._attempts.pop(actuator_pk, None)
+        self._retry_at.pop(actuator_pk, None)
+        self.notify(actuator_pk)
+
     # ------------------------------------------------------------------ waiting
     def wait_applied(self, actuator_pk: int, seq: int, timeout_s: float) -> WaitOutcome:
         """Wait until batch ``seq`` of the stream is applied, the stream is failed, or the
