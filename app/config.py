@@ -45,6 +45,12 @@ class Settings(BaseSettings):
     # WebSocket streaming (docs/api.md, "Streaming").
     ws_max_frame_bytes: int = Field(default=16 * 1024 * 1024, gt=0)
     ws_max_inflight: int = Field(default=16, gt=0)
+    # Frames read ahead per connection (logged in order as the window frees) and process-wide;
+    # past ws_slow_down_frames waiting (queued + in flight) a connection is told to slow down.
+    ws_max_queued_frames: int = Field(default=64, gt=0)
+    ws_max_queued_bytes: int = Field(default=64 * 1024 * 1024, gt=0)
+    ws_max_queued_frames_total: int = Field(default=8192, gt=0)
+    ws_slow_down_frames: int = Field(default=32, gt=1)
     ws_subscriber_queue: int = Field(default=1000, gt=0)
     ws_auth_timeout_s: float = Field(default=10.0, gt=0)
     ws_close_timeout_s: float = Field(default=10.0, gt=0)

@@ -98,7 +98,10 @@ class StreamStats:
         frames_sent: frames handed to :meth:`FrameStreamer.send` (each sent again after a
             reconnection is counted once).
         duplicates: frames the server answered as already logged.
-        slow_downs: back-pressure notices received.
+        slow_downs: ``slow_down`` notices received (the server's queue for this connection,
+            or its process-wide one, filled up).
+        resumes: ``resume`` notices received.
+        throttled_s: seconds :meth:`FrameStreamer.send` waited because of them.
         results: the ``result`` messages pushed back, in order of arrival.
     """
 
@@ -106,6 +109,8 @@ class StreamStats:
     frames_sent: int = 0
     duplicates: int = 0
     slow_downs: int = 0
+    resumes: int = 0
+    throttled_s: float = 0.0
     results: list[dict[str, Any]] = field(default_factory=list)
 
 
@@ -156,6 +161,11 @@ class FrameStreamer:
         self._reader: asyncio.Task[None] | None = None
         self._changed = asyncio.Event()
         self._failure: BaseException | None = None
+        # Between the server's slow_down and resume: send at most advised_rate_hz frames/s
+        # (no frame at all when the server could not say a rate) instead of reconnecting.
+        self._paused = False
+        self._advised_rate_hz: float | None = None
+        self._last_send = 0.0
 
     # ------------------------------------------------------------------ connection
     async def __aenter__(self) -> FrameStreamer:
@@ -205,6 +215,7 @@ class FrameStreamer:
         # Results of frames applied while disconnected are in the store, not pushed again.
         self._awaiting = {s for s in self._awaiting if s > last_applied}
         self._failure = None
+        self._paused = False
         self._reader = asyncio.create_task(self._read(ws))
         for frame in list(self._unlogged.values()):
             await ws.send(frame)
@@ -249,6 +260,11 @@ class FrameStreamer:
                     self.stats.results.append(msg)
                 elif kind == "slow_down":
                     self.stats.slow_downs += 1
+                    self._paused = True
+                    self._advised_rate_hz = msg.get("rate_hz")
+                elif kind == "resume":
+                    self.stats.resumes += 1
+                    self._paused = False
                 elif kind == "error":
                     error = msg
                 self._changed.set()
@@ -283,8 +299,10 @@ class FrameStreamer:
         t0: float | None = None,
         sample_rate_hz: float | None = None,
     ) -> int:
-        """Send the next frame; returns its client sequence number. Blocks while the server
-        pushes back (its in-flight window is full)."""
+        """Send the next frame; returns its client sequence number. After the server's
+        ``slow_down`` it paces frames at the advised rate until ``resume``; it blocks, too,
+        when the server stops reading (a queue bound reached)."""
+        await self._throttle()
         seq = self._next_seq
         frame = encode_frame(
             seq, channels, t_s=t_s, t0=t0, sample_rate_hz=sample_rate_hz, binary=self.binary
@@ -296,11 +314,30 @@ class FrameStreamer:
             ws = await self._ensure_open()
             try:
                 await ws.send(frame)
+                self._last_send = asyncio.get_running_loop().time()
                 return seq
             except ConnectionClosed:
                 await asyncio.sleep(0)  # the reader records why; _ensure_open reconnects
                 if self._failure is None:
                     self._failure = ConnectionError("connection closed while sending")
+
+    async def _throttle(self) -> None:
+        """While the server says ``slow_down``: wait until the next frame is due at its advised
+        rate, or until it says ``resume`` (or the connection drops: reconnecting resets it)."""
+        loop = asyncio.get_running_loop()
+        start = loop.time()
+        while self._paused and self._failure is None:
+            rate = self._advised_rate_hz
+            wait_s = 1.0
+            if rate:
+                due = self._last_send + 1.0 / rate
+                if loop.time() >= due:
+                    break
+                wait_s = due - loop.time()
+            self._changed.clear()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._changed.wait(), wait_s)
+        self.stats.throttled_s += loop.time() - start
 
     async def drain(self, timeout_s: float = DRAIN_TIMEOUT_S) -> list[dict[str, Any]]:
         """Wait until every frame sent is logged and its result pushed (reconnecting as
