@@ -50,6 +50,7 @@ class Settings(BaseSettings):
     ws_max_queued_frames: int = Field(default=64, gt=0)
     ws_max_queued_bytes: int = Field(default=64 * 1024 * 1024, gt=0)
     ws_max_queued_frames_total: int = Field(default=8192, gt=0)
+    ws_max_queued_bytes_total: int = Field(default=512 * 1024 * 1024, gt=0)
     ws_slow_down_frames: int = Field(default=32, gt=1)
     ws_subscriber_queue: int = Field(default=1000, gt=0)
     ws_auth_timeout_s: float = Field(default=10.0, gt=0)

@@ -131,27 +131,32 @@ async def _guard_key(
 
 # ----------------------------------------------------------------------------- ingest stream
 class FrameBudget:
-    """Frames read from every stream connection of the process and not logged yet, against
-    ``ws_max_queued_frames_total``: at half of it every connection is told to slow down, at
-    the bound they stop reading until the loggers catch up. One event loop owns it."""
+    """Frames (and their bytes) read from every stream connection of the process and not
+    logged yet, against ``ws_max_queued_frames_total`` and ``ws_max_queued_bytes_total``: at
+    half of either every connection is told to slow down, at the bound they stop reading until
+    the loggers catch up. One event loop owns it."""
 
-    def __init__(self, limit: int) -> None:
+    def __init__(self, limit: int, limit_bytes: int) -> None:
         self.limit = limit
+        self.limit_bytes = limit_bytes
         self.used = 0
+        self.used_bytes = 0
 
-    def take(self, n: int) -> None:
-        self.used += n
+    def take(self, n_bytes: int) -> None:
+        self.used += 1
+        self.used_bytes += n_bytes
         WS_QUEUED.set(self.used)
 
-    def give(self, n: int) -> None:
+    def give(self, n: int, n_bytes: int) -> None:
         self.used = max(0, self.used - n)
+        self.used_bytes = max(0, self.used_bytes - n_bytes)
         WS_QUEUED.set(self.used)
 
     def pressed(self) -> bool:
-        return self.used * 2 >= self.limit
+        return self.used * 2 >= self.limit or self.used_bytes * 2 >= self.limit_bytes
 
     def full(self) -> bool:
-        return self.used >= self.limit
+        return self.used >= self.limit or self.used_bytes >= self.limit_bytes
 
 
 class RateMeter:
@@ -174,7 +179,9 @@ class RateMeter:
 def _frame_budget(ws: WebSocket, settings: Settings) -> FrameBudget:
     budget: FrameBudget | None = getattr(ws.app.state, "ws_frame_budget", None)
     if budget is None:
-        budget = ws.app.state.ws_frame_budget = FrameBudget(settings.ws_max_queued_frames_total)
+        budget = ws.app.state.ws_frame_budget = FrameBudget(
+            settings.ws_max_queued_frames_total, settings.ws_max_queued_bytes_total
+        )
     return budget
 
 
@@ -196,7 +203,7 @@ class _StreamConn:
     window_free: asyncio.Event = field(default_factory=asyncio.Event)
     inflight_added: asyncio.Event = field(default_factory=asyncio.Event)
     failure: str | None = None  # why the stream is no longer applied, once read back
-    budget: FrameBudget = field(default_factory=lambda: FrameBudget(1))
+    budget: FrameBudget = field(default_factory=lambda: FrameBudget(1, 1))
     queue: deque[str | bytes] = field(default_factory=deque)  # read, not logged yet
     queued_bytes: int = 0
     frame_added: asyncio.Event = field(default_factory=asyncio.Event)
@@ -306,7 +313,7 @@ class _StreamConn:
                 continue
             self.queue.append(data)
             self.queued_bytes += len(data)
-            self.budget.take(1)
+            self.budget.take(len(data))
             self.frame_added.set()
             await self._flow()
 
@@ -323,7 +330,7 @@ class _StreamConn:
                 await self.window_free.wait()
             data = self.queue.popleft()
             self.queued_bytes -= len(data)
-            self.budget.give(1)
+            self.budget.give(1, len(data))
             self.space_free.set()
             if not await self._take_frame(data):
                 return
@@ -332,7 +339,7 @@ class _StreamConn:
     def release(self) -> None:
         """Give the frames still queued back to the process-wide budget (the connection ends;
         they were never acknowledged, so the client sends them again)."""
-        self.budget.give(len(self.queue))
+        self.budget.give(len(self.queue), self.queued_bytes)
         self.queue.clear()
         self.queued_bytes = 0
 
@@ -438,6 +445,8 @@ async def stream(ws: WebSocket, tail: str, actuator_id: str) -> None:
                 "last_applied_seq": start.last_applied_seq,
                 "failure": start.failure,
                 "max_inflight": settings.ws_max_inflight,
+                "max_queued_frames": settings.ws_max_queued_frames,
+                "max_queued_bytes": settings.ws_max_queued_bytes,
             },
         )
         if conn.inflight:

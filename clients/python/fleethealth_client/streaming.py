@@ -166,6 +166,11 @@ class FrameStreamer:
         self._paused = False
         self._advised_rate_hz: float | None = None
         self._last_send = 0.0
+        # Frames sent and not logged yet are at most what the server reads ahead
+        # (ready.max_queued_frames / max_queued_bytes): it then never has to stop reading,
+        # so keepalive pings keep flowing however far the stream is throttled.
+        self._max_unlogged: int | None = None
+        self._max_unlogged_bytes: int | None = None
 
     # ------------------------------------------------------------------ connection
     async def __aenter__(self) -> FrameStreamer:
@@ -216,6 +221,8 @@ class FrameStreamer:
         self._awaiting = {s for s in self._awaiting if s > last_applied}
         self._failure = None
         self._paused = False
+        self._max_unlogged = ready.get("max_queued_frames")
+        self._max_unlogged_bytes = ready.get("max_queued_bytes")
         self._reader = asyncio.create_task(self._read(ws))
         for frame in list(self._unlogged.values()):
             await ws.send(frame)
@@ -307,6 +314,7 @@ class FrameStreamer:
         frame = encode_frame(
             seq, channels, t_s=t_s, t0=t0, sample_rate_hz=sample_rate_hz, binary=self.binary
         )
+        await self._room_for(len(frame))
         self._next_seq += 1
         self._unlogged[seq] = frame
         self.stats.frames_sent += 1
@@ -320,6 +328,19 @@ class FrameStreamer:
                 await asyncio.sleep(0)  # the reader records why; _ensure_open reconnects
                 if self._failure is None:
                     self._failure = ConnectionError("connection closed while sending")
+
+    async def _room_for(self, n_bytes: int) -> None:
+        """Wait until one more unlogged frame stays within the server's read-ahead bounds."""
+        while self._failure is None and self._unlogged and (
+            (self._max_unlogged is not None and len(self._unlogged) >= self._max_unlogged)
+            or (
+                self._max_unlogged_bytes is not None
+                and sum(len(f) for f in self._unlogged.values()) + n_bytes > self._max_unlogged_bytes
+            )
+        ):
+            self._changed.clear()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._changed.wait(), 1.0)
 
     async def _throttle(self) -> None:
         """While the server says ``slow_down``: wait until the next frame is due at its advised
