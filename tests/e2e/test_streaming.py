@@ -464,7 +464,9 @@ def test_a_slow_subscriber_is_dropped_and_does_not_slow_ingest(small_queue_serve
         sock = socket.socket()
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
         sock.connect(("127.0.0.1", port))
-        slow = await connect(url, additional_headers=server.headers, sock=sock, max_queue=1)
+        # Its own keepalive is off as well: it reads nothing (not even pongs) for as long as
+        # ingest takes, and must not give up before the server's 1013.
+        slow = await connect(url, additional_headers=server.headers, sock=sock, max_queue=1, ping_interval=None)
         fast = await connect(url, additional_headers=server.headers)
         fast_seen = 0
 
