@@ -29,7 +29,8 @@ def test_schemathesis_finds_no_failure(live_server: LiveServer, tmp_path: Path) 
         "--max-examples", "5", "--seed", "17", "--workers", "2", "--no-color",
         "--report", "junit", "--report-dir", str(tmp_path),
     ]
-    done = subprocess.run(cmd, capture_output=True, text=True, timeout=540, check=False)
+    # Run in tmp_path: schemathesis keeps a cache folder in its working directory.
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=540, check=False, cwd=tmp_path)
     out = done.stdout + done.stderr
     (tmp_path / "schemathesis.txt").write_text(out)
     assert done.returncode == 0, out[-6000:]
