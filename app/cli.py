@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import getpass
 import json
 import math
 import os
@@ -105,7 +106,7 @@ def _demo_feeder(url: str, key: str, stop: threading.Event) -> None:
 
 
 def cmd_keys(args: argparse.Namespace) -> int:
-    from app.auth.service import create_key, list_keys, parse_scopes, revoke_key
+    from app.auth.service import create_key, list_keys, parse_scopes, revoke_key, set_scopes
     from app.db import Database
 
     db = Database(_settings().database_url)
@@ -127,6 +128,12 @@ def cmd_keys(args: argparse.Namespace) -> int:
                     print(f"no key {args.id}", file=sys.stderr)
                     return 1
                 print(f"revoked key {args.id}")
+        elif args.keys_cmd == "scopes":
+            with db.write() as s:
+                if not set_scopes(s, args.id, parse_scopes(args.scopes)):
+                    print(f"no key {args.id}", file=sys.stderr)
+                    return 1
+                print(f"key {args.id} now has scopes {','.join(parse_scopes(args.scopes))}")
     finally:
         db.dispose()
     return 0
@@ -134,22 +141,46 @@ def cmd_keys(args: argparse.Namespace) -> int:
 
 def cmd_streams(args: argparse.Namespace) -> int:
     from app.db import Database
+    from app.errors import DomainError
     from app.processing.service import failed_streams, reset_failed
 
     db = Database(_settings().database_url)
     try:
-        if args.streams_cmd == "failed":
-            with db.read() as s:
-                for operator, tail, actuator_id, reason in failed_streams(s):
-                    print(f"{operator}\t{tail}\t{actuator_id}\t{reason}")
-        elif args.streams_cmd == "reset":
-            with db.write() as s:
-                if not reset_failed(s, args.operator, args.tail, args.actuator_id):
-                    print(f"{args.tail}/{args.actuator_id} is not marked failed", file=sys.stderr)
-                    return 1
-            print(f"reset {args.tail}/{args.actuator_id}; the processor applies it again")
+        return _streams(args, db, failed_streams, reset_failed)
+    except DomainError as exc:
+        print(f"{exc.name}: {exc.detail}", file=sys.stderr)
+        return 1
     finally:
         db.dispose()
+
+
+def _streams(args: argparse.Namespace, db: Any, failed_streams: Any, reset_failed: Any) -> int:
+    if args.streams_cmd == "failed":
+        with db.read() as s:
+            for operator, tail, actuator_id, reason in failed_streams(s):
+                print(f"{operator}\t{tail}\t{actuator_id}\t{reason}")
+    elif args.streams_cmd == "reset":
+        with db.write() as s:
+            if not reset_failed(s, args.operator, args.tail, args.actuator_id):
+                print(f"{args.tail}/{args.actuator_id} is not marked failed", file=sys.stderr)
+                return 1
+        print(f"reset {args.tail}/{args.actuator_id}; the processor applies it again")
+    elif args.streams_cmd == "rewind":
+        from app.streams.service import actuator_by_name, rewind
+
+        actor = f"cli {getpass.getuser()}@{socket.gethostname()}"
+        with db.write() as s:
+            act = actuator_by_name(s, args.operator, args.tail, args.actuator_id, lock=True)
+            row = rewind(s, act, args.to_seq, args.reason, actor=actor, key_id=None)
+            print(_rewind_text(row))
+        print("running servers re-read the stream's applied mark from the database; a "
+              "`?wait=` in flight there may end early", file=sys.stderr)
+    elif args.streams_cmd == "rewinds":
+        from app.streams.service import actuator_by_name, rewinds
+
+        with db.read() as s:
+            for row in rewinds(s, actuator_by_name(s, args.operator, args.tail, args.actuator_id)):
+                print(_rewind_text(row))
     return 0
 
 
@@ -179,6 +210,14 @@ def cmd_webhooks(args: argparse.Namespace) -> int:
     finally:
         db.dispose()
     return 0
+
+
+def _rewind_text(row: Any) -> str:
+    seqs = [d["seq"] for d in row.discarded]
+    ids = ", ".join(d["batch_id"] for d in row.discarded[:10]) + (" ..." if len(seqs) > 10 else "")
+    return (f"rewind {row.id} at {row.at.isoformat()} by {row.actor}: kept 1..{row.to_seq}, discarded "
+            f"{len(seqs)} batches (seq {seqs[0] if seqs else '-'}..{seqs[-1] if seqs else '-'}: {ids}); "
+            f"estimators {'restarted' if row.estimators_reset else 'kept'}; reason: {row.reason}")
 
 
 def openapi_document() -> dict[str, Any]:
@@ -223,15 +262,29 @@ def build_parser() -> argparse.ArgumentParser:
     ks.add_parser("list", help="list keys (never the keys themselves)")
     kr = ks.add_parser("revoke", help="revoke a key by id")
     kr.add_argument("id", type=int)
+    kq = ks.add_parser("scopes", help="replace a key's scopes (open connections that lose theirs close)")
+    kq.add_argument("id", type=int)
+    kq.add_argument("scopes", help="comma-separated: ingest,read,admin")
     sp.set_defaults(func=cmd_keys)
 
-    sp = sub.add_parser("streams", help="streams marked failed (no longer applied)")
+    sp = sub.add_parser("streams", help="streams marked failed (no longer applied), rewinds")
     ss = sp.add_subparsers(dest="streams_cmd", required=True)
     ss.add_parser("failed", help="list failed streams with the reason")
     sr = ss.add_parser("reset", help="clear a stream's failed mark so it is applied again")
     sr.add_argument("--operator", required=True)
     sr.add_argument("tail")
     sr.add_argument("actuator_id")
+    sw = ss.add_parser("rewind", help="discard a stream's batches after --to-seq (recorded; the "
+                       "estimators restart when they had applied one)")
+    sw.add_argument("--operator", required=True)
+    sw.add_argument("--to-seq", type=int, required=True, help="keep batches 1..TO_SEQ")
+    sw.add_argument("--reason", required=True, help="why (kept in the record)")
+    sw.add_argument("tail")
+    sw.add_argument("actuator_id")
+    sl = ss.add_parser("rewinds", help="list a stream's rewinds")
+    sl.add_argument("--operator", required=True)
+    sl.add_argument("tail")
+    sl.add_argument("actuator_id")
     sp.set_defaults(func=cmd_streams)
 
     sp = sub.add_parser("webhooks", help="URL prefixes an operator's webhooks may deliver to")

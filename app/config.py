@@ -48,6 +48,13 @@ class Settings(BaseSettings):
     # WebSocket streaming (docs/api.md, "Streaming").
     ws_max_frame_bytes: int = Field(default=16 * 1024 * 1024, gt=0)
     ws_max_inflight: int = Field(default=16, gt=0)
+    # Frames read ahead per connection (logged in order as the window frees) and process-wide;
+    # past ws_slow_down_frames waiting (queued + in flight) a connection is told to slow down.
+    ws_max_queued_frames: int = Field(default=64, gt=0)
+    ws_max_queued_bytes: int = Field(default=64 * 1024 * 1024, gt=0)
+    ws_max_queued_frames_total: int = Field(default=8192, gt=0)
+    ws_max_queued_bytes_total: int = Field(default=512 * 1024 * 1024, gt=0)
+    ws_slow_down_frames: int = Field(default=32, gt=1)
     ws_subscriber_queue: int = Field(default=1000, gt=0)
     ws_auth_timeout_s: float = Field(default=10.0, gt=0)
     ws_close_timeout_s: float = Field(default=10.0, gt=0)
@@ -56,6 +63,9 @@ class Settings(BaseSettings):
     ws_ping_interval_s: float = Field(default=20.0, gt=0)
     ws_ping_timeout_s: float = Field(default=20.0, gt=0)
     ws_result_poll_s: float = Field(default=1.0, gt=0)
+    # How often an open WebSocket re-reads its key: a revoked key or a lost scope closes the
+    # connection (1008) within this time, whichever process revoked it.
+    ws_auth_recheck_s: float = Field(default=5.0, gt=0)
     socket_send_buffer_bytes: int | None = Field(default=None, gt=0)
     shutdown_timeout_s: float = Field(default=10.0, gt=0)
     # Fleet event subscribers re-read the log this often (events applied by other processes).
@@ -71,6 +81,12 @@ class Settings(BaseSettings):
     webhook_max_attempts: int = Field(default=12, gt=0)
     webhook_retry_base_s: float = Field(default=5.0, gt=0)
     webhook_retry_max_s: float = Field(default=3600.0, gt=0)
+    # /metrics: "key" needs a key with the read scope, "open" needs none, "off" answers 404.
+    metrics_access: Literal["off", "key", "open"] = "key"
+    # Retry-After (seconds) of a 503 when the database is unreachable or out of space.
+    storage_retry_after_s: int = Field(default=5, gt=0)
+    # /readyz is not ready while the file system of a SQLite database has less free space.
+    storage_min_free_bytes: int = Field(default=64 * 1024 * 1024, ge=0)
 
     @field_validator("bootstrap_admin_key")
     @classmethod

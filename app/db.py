@@ -8,13 +8,16 @@ readers never wait on writers. On PostgreSQL the per-stream lease is a row lock
 
 from __future__ import annotations
 
+import threading
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 from sqlalchemy import Engine, MetaData, create_engine, event
-from sqlalchemy.engine import make_url
+from sqlalchemy.engine import ExceptionContext, make_url
+from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import DeclarativeBase, Session, sessionmaker
 
 NAMING_CONVENTION = {
@@ -75,6 +78,35 @@ def _install_sqlite_hooks(engine: Engine, synchronous: str) -> None:
         conn.exec_driver_sql(f"BEGIN {mode}")
 
 
+#: How long a storage fault keeps /readyz "not ready" when no write has succeeded since.
+STORAGE_FAULT_MEMORY_S = 30.0
+
+
+class StorageHealth:
+    """The last storage fault (a database error of operation: disk full, I/O error, lost
+    connection) and whether a write transaction has committed since; read by /readyz, which a
+    plain ``SELECT 1`` cannot tell about a full disk."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._fault: str | None = None
+        self._fault_at = 0.0
+
+    def fault(self, reason: str) -> None:
+        with self._lock:
+            self._fault, self._fault_at = reason, time.monotonic()
+
+    def committed(self) -> None:
+        with self._lock:
+            self._fault = None
+
+    def recent_fault(self) -> str | None:
+        with self._lock:
+            if self._fault is not None and time.monotonic() - self._fault_at < STORAGE_FAULT_MEMORY_S:
+                return self._fault
+            return None
+
+
 class Database:
     """Owns the engine and the two session factories (read and write)."""
 
@@ -89,6 +121,17 @@ class Database:
         )
         self._read = sessionmaker(bind=self.engine, expire_on_commit=False)
         self._write = sessionmaker(bind=write_bind, expire_on_commit=False)
+        self.storage = StorageHealth()
+
+        @event.listens_for(self.engine, "handle_error")
+        def _fault(ctx: ExceptionContext) -> None:
+            if isinstance(ctx.sqlalchemy_exception, OperationalError) or ctx.is_disconnect:
+                orig = ctx.original_exception
+                self.storage.fault(f"{type(orig).__name__}: {str(orig).strip().splitlines()[0] if str(orig).strip() else ''}"[:300])
+
+        @event.listens_for(self._write, "after_commit")
+        def _committed(_: Session) -> None:
+            self.storage.committed()
 
     @contextmanager
     def read(self) -> Iterator[Session]:

@@ -16,12 +16,13 @@ from app.auth.service import SCOPES, ensure_key
 from app.config import Settings, get_settings
 from app.dashboard import router as dashboard_router
 from app.db import Database
-from app.errors import install_handlers
+from app.errors import document_errors, install_handlers
 from app.events import router as events_router
 from app.faults import router as faults_router
 from app.fleet import router as fleet_router
 from app.health import router as health_router
 from app.processing.processor import Processor
+from app.streams import router as streams_router
 from app.system import router as system_router
 from app.telemetry import router as telemetry_router
 from app.telemetry.validation import ControlCharGuard
@@ -41,7 +42,9 @@ Health monitoring of aircraft actuators across a fleet: telemetry ingest per tai
 stateful estimators per stream, health indicators, remaining useful life and fault isolation.
 
 Authenticate with `Authorization: Bearer <key>`. Errors have one shape:
-`{"error": "<Name>", "detail": "<message>"}`.
+`{"error": "<Name>", "detail": "<message>"}`; for `ValidationError` (422) `detail` lists the
+issues (`{"loc", "msg", "type"}`). A 503 `StorageUnavailable` (database unreachable or out of
+space) stored nothing: retry after `Retry-After` seconds.
 """
 
 
@@ -98,12 +101,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         lifespan=lifespan,
     )
     install_handlers(app)
+    app.openapi = lambda: document_errors(FastAPI.openapi(app))  # type: ignore[method-assign]
     app.add_middleware(ControlCharGuard)
     for module in (
         system_router,
         fleet_router,
         auth_router,
         telemetry_router,
+        streams_router,
         health_router,
         faults_router,
         websocket_router,

@@ -291,6 +291,8 @@ class MaintenanceAction(Base):
     status_before: Mapped[str] = mapped_column(String(8))
     recorded_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     recorded_by_key_id: Mapped[int | None] = mapped_column(Integer, nullable=True)
+
+
 # ----------------------------------------------------------------------------- event log
 class EventCounter(Base):
     """The last fleet event id given out per operator. Its row is locked by the transaction
@@ -446,3 +448,24 @@ class WebhookAttempt(Base):
     status_code: Mapped[int | None] = mapped_column(Integer, nullable=True)
     error: Mapped[str | None] = mapped_column(String(500), nullable=True)
     duration_ms: Mapped[float] = mapped_column(Float)
+
+
+class StreamRewind(Base):
+    """An admin rewind of a stream: who, when, why, and every batch it discarded (the record
+    stays when the batches are gone)."""
+
+    __tablename__ = "stream_rewinds"
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    actuator_pk: Mapped[int] = mapped_column(ForeignKey("actuators.id", ondelete="CASCADE"), index=True)
+    at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    # "api key <id>" or "cli <user>@<host>"; key_id when it came through the API.
+    actor: Mapped[str] = mapped_column(String(200))
+    key_id: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    reason: Mapped[str] = mapped_column(String(500))
+    to_seq: Mapped[int] = mapped_column(BigInteger)
+    from_logged_seq: Mapped[int] = mapped_column(BigInteger)
+    from_applied_seq: Mapped[int] = mapped_column(BigInteger)
+    # The estimators had applied a discarded batch: they restart and re-apply 1..to_seq.
+    estimators_reset: Mapped[bool] = mapped_column(Boolean)
+    # [{"seq", "batch_id", "n_samples", "t_first_s", "t_last_s", "received_at"}, ...]
+    discarded: Mapped[list[dict[str, Any]]] = mapped_column(JSON)

@@ -39,6 +39,22 @@ def active_key_with_operator(session: Session, key_hash: str) -> tuple[ApiKey, s
     return None if row is None else (row[0], row[1])
 
 
+def active_key_scopes(session: Session, key_id: int) -> str | None:
+    """The scopes of the key with this id, None when it is revoked or gone."""
+    return session.scalar(
+        select(ApiKey.scopes).where(ApiKey.id == key_id, ApiKey.revoked_at.is_(None))
+    )
+
+
+def set_scopes(session: Session, key_id: int, scopes: str) -> bool:
+    key = session.get(ApiKey, key_id)
+    if key is None:
+        return False
+    key.scopes = scopes
+    session.flush()
+    return True
+
+
 def keys_with_operators(session: Session) -> list[tuple[ApiKey, str]]:
     rows = session.execute(select(ApiKey, Operator.name).join(Operator).order_by(ApiKey.id))
     return [(k, name) for k, name in rows]

@@ -92,6 +92,20 @@ def authenticate(session: Session, authorization: str | None) -> Principal:
     )
 
 
+def recheck(session: Session, principal: Principal, scope: str) -> None:
+    """Raise unless the principal's key is still active and still carries ``scope`` (an open
+    WebSocket asks this periodically: a revocation or a scope change in any process ends it)."""
+    scopes = repository.active_key_scopes(session, principal.key_id)
+    if scopes is None:
+        raise Unauthorized("the API key was revoked")
+    Principal(principal.operator_id, principal.operator, frozenset(scopes.split(",")), principal.key_id).require(scope)
+
+
+def set_scopes(session: Session, key_id: int, scopes: list[str]) -> bool:
+    """Replace a key's scopes; open connections that lose the scope they need are closed."""
+    return repository.set_scopes(session, key_id, ",".join(parse_scopes(scopes)))
+
+
 def list_keys(session: Session) -> list[tuple[ApiKey, str]]:
     return repository.keys_with_operators(session)
 

@@ -34,6 +34,7 @@ from sqlalchemy.orm import Session
 
 from app.config import Settings
 from app.db import Database
+from app.errors import STORAGE_FAULTS
 from app.fleet import service as fleet
 from app.processing import repository, service
 from app.processing.orchestration import StateUnreadable
@@ -101,6 +102,16 @@ class Processor:
 
     def notify(self, actuator_pk: int) -> None:
         self._queue.put(actuator_pk)
+
+    def forget(self, actuator_pk: int) -> None:
+        """Drop what this process remembers of a stream (after an admin rewind committed: its
+        applied mark went back), and look at it again."""
+        with self._cond:
+            self._applied.pop(actuator_pk, None)
+            self._failed.pop(actuator_pk, None)
+        self._attempts.pop(actuator_pk, None)
+        self._retry_at.pop(actuator_pk, None)
+        self.notify(actuator_pk)
 
     # ------------------------------------------------------------------ waiting
     def wait_applied(self, actuator_pk: int, seq: int, timeout_s: float) -> WaitOutcome:
@@ -216,6 +227,12 @@ class Processor:
     def _attempt_failed(self, actuator_pk: int, exc: BaseException) -> None:
         """Back off a stream whose apply raised; mark it failed after the last attempt."""
         APPLY_ERRORS.inc()
+        if isinstance(exc, STORAGE_FAULTS):
+            # The database is unreachable or full, the stream is not broken: retry (without a
+            # limit) once it is back; nothing of the attempt was committed.
+            self._retry_at[actuator_pk] = time.monotonic() + self.settings.processor_retry_backoff_s
+            log.warning("applying stream %s: storage unavailable (%s); retrying", actuator_pk, exc)
+            return
         n = self._attempts.get(actuator_pk, 0) + 1
         self._attempts[actuator_pk] = n
         if n < self.settings.processor_max_attempts:

@@ -31,7 +31,7 @@ from urllib.parse import unquote_to_bytes
 import numpy as np
 import orjson
 import pyarrow as pa
-from pydantic import AfterValidator
+from pydantic import AfterValidator, Field
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from app.errors import InvalidBatch
@@ -153,7 +153,11 @@ def no_control_chars(value: str) -> str:
 
 
 #: A string that holds no control characters (names, ids, descriptions).
-Identifier = Annotated[str, AfterValidator(no_control_chars)]
+#: The same rule as a JSON Schema pattern, for the OpenAPI (bodies, paths and queries).
+NO_CONTROL_PATTERN = r"^[^\x00-\x1f\x7f]*$"
+Identifier = Annotated[
+    str, AfterValidator(no_control_chars), Field(json_schema_extra={"pattern": NO_CONTROL_PATTERN})
+]
 
 _ENCODED_CONTROL = re.compile(rb"%(?:[01][0-9a-fA-F]|7[fF])")
 _RAW_CONTROL = re.compile(rb"[\x00-\x1f\x7f]")
@@ -173,7 +177,8 @@ class ControlCharGuard:
             if scope["type"] == "http":
                 body = orjson.dumps({
                     "error": "ValidationError",
-                    "detail": "path and query must not contain NUL or other control characters",
+                    "detail": [{"loc": ["path"], "type": "control_characters",
+                                "msg": "path and query must not contain NUL or other control characters"}],
                 })
                 await send({
                     "type": "http.response.start",

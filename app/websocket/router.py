@@ -6,10 +6,12 @@ log holds for them: durable before ack, exactly once, in order, applied after a 
 protocol is documented in docs/api.md ("Streaming").
 
 Close codes: 1003 a message that is not a frame; 1007 a frame whose samples are invalid; 1008
-authentication, authorization or a frame the log refuses (client_seq or time not after the last,
+authentication, authorization (also a key revoked or stripped of the scope while the connection
+is open, seen within ``ws_auth_recheck_s``) or a frame the log refuses (client_seq or time not after the last,
 same client_seq with other samples); 1009 a frame above ``ws_max_frame_bytes`` (by the server);
 1011 the stream is marked failed (its frames are logged but not applied); 1013 a fleet
-subscriber too slow for its bounded queue.
+subscriber too slow for its bounded queue, or the database unavailable (the frame was not logged;
+reconnect and send it again).
 """
 
 from __future__ import annotations
@@ -17,20 +19,22 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from collections import OrderedDict
+import time
+from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 from typing import Any
 
 import orjson
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from prometheus_client import Counter, Gauge
+from sqlalchemy.exc import SQLAlchemyError
 from starlette.concurrency import run_in_threadpool
 from starlette.websockets import WebSocketState
 
 from app.auth.service import Principal
 from app.config import Settings
 from app.db import Database
-from app.errors import DomainError, IdempotencyConflict, InvalidBatch, StaleBatch
+from app.errors import STORAGE_FAULTS, DomainError, IdempotencyConflict, InvalidBatch, StaleBatch
 from app.events import service as events
 from app.events.service import LOGGED_TYPES
 from app.ingest import UnsupportedFrame
@@ -46,6 +50,11 @@ router = APIRouter(prefix="/v1")
 WS_CONNECTIONS = Gauge("fleethealth_ws_connections", "Open WebSocket connections", ["endpoint"])
 WS_FRAMES = Counter("fleethealth_ws_frames_total", "Streamed frames by outcome", ["outcome"])
 WS_DROPPED = Counter("fleethealth_ws_subscribers_dropped_total", "Fleet subscribers dropped as too slow")
+WS_FLOW = Counter("fleethealth_ws_flow_total", "slow_down and resume messages sent to stream clients", ["message"])
+WS_QUEUED = Gauge("fleethealth_ws_queued_frames", "Frames read from stream connections, not logged yet")
+WS_KEY_CLOSES = Counter(
+    "fleethealth_ws_key_closes_total", "WebSockets closed because their key was revoked or lost its scope", ["error"]
+)
 
 CLOSE_UNSUPPORTED = 1003
 CLOSE_INVALID = 1007
@@ -100,7 +109,86 @@ async def _authenticate(ws: WebSocket, db: Database, settings: Settings, scope: 
     return principal
 
 
+async def _guard_key(
+    ws: WebSocket, db: Database, settings: Settings, principal: Principal, scope: str, lock: asyncio.Lock
+) -> None:
+    """Re-read the connection's key every ``ws_auth_recheck_s``; once it is revoked or lacks
+    ``scope``, close with 1008 and return. Reading the database (not an in-process notice)
+    makes a revocation by any process, or by the CLI, count."""
+    while True:
+        await asyncio.sleep(settings.ws_auth_recheck_s)
+        try:
+            await run_in_threadpool(service.recheck_key, db, principal, scope)
+        except DomainError as exc:
+            WS_KEY_CLOSES.labels(exc.name).inc()
+
+            async def close(err: DomainError = exc) -> None:
+                async with lock:  # never in the middle of another message
+                    await _refuse(ws, CLOSE_POLICY, err.name, err.detail)
+
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(close(), settings.ws_close_timeout_s)
+            return
+        except SQLAlchemyError as exc:  # the database is unreachable now: check again later
+            log.warning("could not re-check the key of an open WebSocket: %s", type(exc).__name__)
+
+
 # ----------------------------------------------------------------------------- ingest stream
+class FrameBudget:
+    """Frames (and their bytes) read from every stream connection of the process and not
+    logged yet, against ``ws_max_queued_frames_total`` and ``ws_max_queued_bytes_total``: at
+    half of either every connection is told to slow down, at the bound they stop reading until
+    the loggers catch up. One event loop owns it."""
+
+    def __init__(self, limit: int, limit_bytes: int) -> None:
+        self.limit = limit
+        self.limit_bytes = limit_bytes
+        self.used = 0
+        self.used_bytes = 0
+
+    def take(self, n_bytes: int) -> None:
+        self.used += 1
+        self.used_bytes += n_bytes
+        WS_QUEUED.set(self.used)
+
+    def give(self, n: int, n_bytes: int) -> None:
+        self.used = max(0, self.used - n)
+        self.used_bytes = max(0, self.used_bytes - n_bytes)
+        WS_QUEUED.set(self.used)
+
+    def pressed(self) -> bool:
+        return self.used * 2 >= self.limit or self.used_bytes * 2 >= self.limit_bytes
+
+    def full(self) -> bool:
+        return self.used >= self.limit or self.used_bytes >= self.limit_bytes
+
+
+class RateMeter:
+    """Events per second over the last ``window`` events (the rate a connection's results come
+    back at: what the server can sustain for this stream now)."""
+
+    def __init__(self, window: int = 32) -> None:
+        self.times: deque[float] = deque(maxlen=window)
+
+    def tick(self) -> None:
+        self.times.append(time.monotonic())
+
+    def rate_hz(self) -> float | None:
+        if len(self.times) < 2:
+            return None
+        span = time.monotonic() - self.times[0]
+        return round((len(self.times) - 1) / span, 3) if span > 0 else None
+
+
+def _frame_budget(ws: WebSocket, settings: Settings) -> FrameBudget:
+    budget: FrameBudget | None = getattr(ws.app.state, "ws_frame_budget", None)
+    if budget is None:
+        budget = ws.app.state.ws_frame_budget = FrameBudget(
+            settings.ws_max_queued_frames_total, settings.ws_max_queued_bytes_total
+        )
+    return budget
+
+
 @dataclass
 class _StreamConn:
     """One ingest connection: frames logged and waiting for their results, in stream order."""
@@ -119,6 +207,13 @@ class _StreamConn:
     window_free: asyncio.Event = field(default_factory=asyncio.Event)
     inflight_added: asyncio.Event = field(default_factory=asyncio.Event)
     failure: str | None = None  # why the stream is no longer applied, once read back
+    budget: FrameBudget = field(default_factory=lambda: FrameBudget(1, 1))
+    queue: deque[str | bytes] = field(default_factory=deque)  # read, not logged yet
+    queued_bytes: int = 0
+    frame_added: asyncio.Event = field(default_factory=asyncio.Event)
+    space_free: asyncio.Event = field(default_factory=asyncio.Event)
+    paused: bool = False  # slow_down sent, resume not yet
+    results_rate: RateMeter = field(default_factory=lambda: RateMeter())
 
     # ------------------------------------------------------------------ results
     def _take_pushed(self) -> None:
@@ -164,7 +259,9 @@ class _StreamConn:
                     break
                 self.inflight.pop(head)
                 await _send(self.ws, self.lock, msg)
+                self.results_rate.tick()
                 self.window_free.set()
+            await self._flow()
             if self.inflight and self.failure is not None:
                 # Frames logged but never to be applied: say so instead of a silent wait.
                 await _refuse(
@@ -174,42 +271,81 @@ class _StreamConn:
                 return
 
     # ------------------------------------------------------------------ frames
-    async def _window_slot(self, nxt: asyncio.Future[Any]) -> bool:
-        """Wait until fewer than ``ws_max_inflight`` frames await their results. Meanwhile the
-        next message may be read ahead (one frame at most, so TCP still pushes back on the
-        sender) to notice a peer that leaves. False when the peer left."""
-        window = self.settings.ws_max_inflight
-        told = False
-        while len(self.inflight) >= window:
-            if not told:
-                await _send(self.ws, self.lock, {"type": "slow_down", "inflight": len(self.inflight)})
-                told = True
-            self.window_free.clear()
-            if len(self.inflight) < window:
-                break
-            free = asyncio.ensure_future(self.window_free.wait())
-            watch = {free} if nxt.done() else {free, nxt}
-            await asyncio.wait(watch, return_when=asyncio.FIRST_COMPLETED)
-            free.cancel()
-            if nxt.done() and nxt.result()["type"] == "websocket.disconnect":
-                return False
-        return True
+    # Three tasks share a connection: ``read_frames`` keeps reading the socket (so keepalive
+    # pings and pongs are answered even while the stream is throttled) into a bounded queue;
+    # ``log_frames`` logs queued frames in order while fewer than ``ws_max_inflight`` await
+    # their results; ``push_results`` sends results. ``_flow`` tells the client to slow down
+    # (with the rate its results come back at) and to resume; only a client that ignores
+    # ``slow_down`` until the queue's hard bound is full meets TCP back-pressure.
+    def _queue_full(self) -> bool:
+        return (
+            len(self.queue) >= self.settings.ws_max_queued_frames
+            or self.queued_bytes >= self.settings.ws_max_queued_bytes
+            or self.budget.full()
+        )
+
+    async def _flow(self) -> None:
+        """Send ``slow_down`` when the frames waiting here (queued and in flight) reach
+        ``ws_slow_down_frames`` or the process-wide queue is half full; ``resume`` once they
+        are back to half of it."""
+        waiting = len(self.queue) + len(self.inflight)
+        high = self.settings.ws_slow_down_frames
+        if not self.paused and (waiting >= high or self.budget.pressed()):
+            self.paused = True
+            WS_FLOW.labels("slow_down").inc()
+            await _send(self.ws, self.lock, {
+                "type": "slow_down", "queued": len(self.queue), "inflight": len(self.inflight),
+                "rate_hz": self.results_rate.rate_hz(),
+            })
+        elif self.paused and waiting <= high // 2 and not self.budget.pressed():
+            self.paused = False
+            WS_FLOW.labels("resume").inc()
+            await _send(self.ws, self.lock, {"type": "resume", "rate_hz": self.results_rate.rate_hz()})
 
     async def read_frames(self) -> None:
-        nxt: asyncio.Future[Any] = asyncio.ensure_future(self.ws.receive())
-        try:
-            while True:
-                msg = await nxt
-                if msg["type"] == "websocket.disconnect":
-                    return
-                nxt = asyncio.ensure_future(self.ws.receive())
-                if not await self._window_slot(nxt):
-                    return
-                data = msg.get("text") if msg.get("text") is not None else msg.get("bytes")
-                if data is not None and not await self._take_frame(data):
-                    return
-        finally:
-            nxt.cancel()
+        while True:
+            while self._queue_full():
+                self.space_free.clear()
+                if not self._queue_full():
+                    break
+                await self.space_free.wait()
+            msg = await self.ws.receive()
+            if msg["type"] == "websocket.disconnect":
+                return
+            data = msg.get("text") if msg.get("text") is not None else msg.get("bytes")
+            if data is None:
+                continue
+            self.queue.append(data)
+            self.queued_bytes += len(data)
+            self.budget.take(len(data))
+            self.frame_added.set()
+            await self._flow()
+
+    async def log_frames(self) -> None:
+        window = self.settings.ws_max_inflight
+        while True:
+            while not self.queue:
+                self.frame_added.clear()
+                await self.frame_added.wait()
+            while len(self.inflight) >= window:
+                self.window_free.clear()
+                if len(self.inflight) < window:
+                    break
+                await self.window_free.wait()
+            data = self.queue.popleft()
+            self.queued_bytes -= len(data)
+            self.budget.give(1, len(data))
+            self.space_free.set()
+            if not await self._take_frame(data):
+                return
+            await self._flow()
+
+    def release(self) -> None:
+        """Give the frames still queued back to the process-wide budget (the connection ends;
+        they were never acknowledged, so the client sends them again)."""
+        self.budget.give(len(self.queue), self.queued_bytes)
+        self.queue.clear()
+        self.queued_bytes = 0
 
     async def _take_frame(self, data: str | bytes) -> bool:
         """Log one frame and acknowledge it; False when it was refused (connection closed)."""
@@ -229,6 +365,15 @@ class _StreamConn:
         except (StaleBatch, IdempotencyConflict) as exc:
             WS_FRAMES.labels("refused").inc()
             await _refuse(self.ws, CLOSE_POLICY, exc.name, exc.detail)
+            return False
+        except STORAGE_FAULTS as exc:
+            # Nothing of the frame was stored; the client reconnects (1013) and sends it again.
+            WS_FRAMES.labels("storage_unavailable").inc()
+            await _refuse(
+                self.ws, CLOSE_TRY_LATER, "StorageUnavailable",
+                f"the database is unavailable ({type(exc).__name__}); the frame was not logged, retry later",
+                retry_after_s=self.settings.storage_retry_after_s,
+            )
             return False
         if ack.replayed:
             WS_FRAMES.labels("duplicate").inc()
@@ -280,6 +425,7 @@ async def stream(ws: WebSocket, tail: str, actuator_id: str) -> None:
         channels=start.channels,
         with_samples=ws.query_params.get("samples", "false").lower() in ("1", "true", "yes"),
         sub=sub,
+        budget=_frame_budget(ws, settings),
     )
     # Frames logged before a dropped connection and not applied yet: their results come here.
     for seq, client_seq in start.pending:
@@ -287,6 +433,7 @@ async def stream(ws: WebSocket, tail: str, actuator_id: str) -> None:
             conn.inflight[seq] = client_seq
     WS_CONNECTIONS.labels("stream").inc()
     pusher = asyncio.create_task(conn.push_results())
+    tasks = {pusher}
     try:
         await _send(
             ws,
@@ -302,21 +449,32 @@ async def stream(ws: WebSocket, tail: str, actuator_id: str) -> None:
                 "last_applied_seq": start.last_applied_seq,
                 "failure": start.failure,
                 "max_inflight": settings.ws_max_inflight,
+                "max_queued_frames": settings.ws_max_queued_frames,
+                "max_queued_bytes": settings.ws_max_queued_bytes,
             },
         )
         if conn.inflight:
             conn.inflight_added.set()
             processor.notify(pk)
-        reader = asyncio.create_task(conn.read_frames())
-        done, _ = await asyncio.wait({reader, pusher}, return_when=asyncio.FIRST_COMPLETED)
+        tasks = {
+            pusher,
+            asyncio.create_task(conn.read_frames()),
+            asyncio.create_task(conn.log_frames()),
+            asyncio.create_task(_guard_key(ws, db, settings, principal, "ingest", conn.lock)),
+        }
+        done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
         for task in done:
             if task.exception() is not None and not isinstance(task.exception(), WebSocketDisconnect):
                 log.error("stream connection failed", exc_info=task.exception())
-        reader.cancel()
     except WebSocketDisconnect:
         log.debug("stream peer left during the handshake messages")
     finally:
-        pusher.cancel()
+        for task in tasks:
+            task.cancel()
+        # Awaited, so that no task outlives its connection ("Task was destroyed but it is
+        # pending"); a frame being logged finishes its transaction in the thread pool anyway.
+        await asyncio.gather(*tasks, return_exceptions=True)
+        conn.release()
         hub.unsubscribe(sub)
         WS_CONNECTIONS.labels("stream").dec()
         if ws.application_state == WebSocketState.CONNECTED:
@@ -394,9 +552,13 @@ async def fleet_events(ws: WebSocket) -> None:
             pass  # subscribers have nothing to say; anything they send is ignored
 
     tasks: list[asyncio.Task[None]] = []
+
+    async def guard() -> None:
+        await _guard_key(ws, db, settings, principal, "read", lock)
+
     try:
         await _send(ws, lock, {"type": "ready", "tails": tails or None, "types": sorted(types), "after": cursor})
-        tasks.append(asyncio.create_task(watch_peer()))
+        tasks += [asyncio.create_task(watch_peer()), asyncio.create_task(guard())]
         if live is not None:
             tasks += [asyncio.create_task(send_live()), asyncio.create_task(watch_overflow())]
         if wake is not None:

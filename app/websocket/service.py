@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from app.auth.service import Principal, authenticate
+from app.auth.service import Principal, authenticate, recheck
 from app.db import Database
 from app.fleet import service as fleet
 from app.ingest import client_seq_of
@@ -33,6 +33,12 @@ class StreamStart:
 def authenticate_key(db: Database, authorization: str) -> Principal:
     with db.read() as s:
         return authenticate(s, authorization)
+
+
+def recheck_key(db: Database, principal: Principal, scope: str) -> None:
+    """Raise Unauthorized / Forbidden when the key was revoked or lost ``scope``."""
+    with db.read() as s:
+        recheck(s, principal, scope)
 
 
 def stream_start(db: Database, principal: Principal, tail: str, actuator_id: str) -> StreamStart:

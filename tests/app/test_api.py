@@ -243,8 +243,23 @@ def test_metrics_and_probes(api: Api) -> None:
     assert api.c.get("/healthz").json() == {"status": "ok"}
     r = api.c.get("/readyz")
     assert r.status_code == 200 and r.json()["checks"]["schema"] == "ok"
-    text = api.c.get("/metrics").text
+    # Default FLEETHEALTH_METRICS_ACCESS=key: a key with the read scope is needed.
+    assert api.c.get("/metrics").status_code == 401
+    text = api.get("/metrics").text
     assert "fleethealth_batches_logged_total" in text and "fleethealth_samples_applied_total" in text
+
+
+@pytest.mark.parametrize("access", ["off", "open"])
+def test_metrics_access_setting(db_url: str, access: str) -> None:
+    with TestClient(create_app(make_settings(db_url, metrics_access=access, warm_kernels=False))) as c:
+        anonymous = c.get("/metrics")
+        keyed = c.get("/metrics", headers={"Authorization": f"Bearer {ADMIN_KEY}"})
+    if access == "off":
+        assert anonymous.status_code == keyed.status_code == 404
+        assert keyed.json()["error"] == "NotFound"
+    else:
+        assert anonymous.status_code == keyed.status_code == 200
+        assert "fleethealth_batches_logged_total" in anonymous.text
 
 
 def test_key_creation_endpoint(api: Api) -> None:

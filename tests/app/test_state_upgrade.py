@@ -104,7 +104,7 @@ def test_unreadable_state_without_the_log_fails_the_stream_visibly(
     first = board["actuators"][0]  # worst first
     assert (first["actuator_id"], first["status"], first["failure"]) == ("ema1", "failed", h["failure"])
     assert _metric("fleethealth_stream_failures_total", cause="state_unreadable") == failures + 1
-    metrics = api.c.get("/metrics").text
+    metrics = api.get("/metrics").text
     assert "fleethealth_streams_failed 1.0" in metrics
 
     # Not retried: the stream is out of the processor's scan, and another wait answers at once.

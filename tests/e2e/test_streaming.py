@@ -268,44 +268,47 @@ def paused_server(tmp_path: Path) -> Any:
     upgrade(url)
     server = LiveServer(url, tmp_path / "server.log",
                         {"FLEETHEALTH_PROCESSOR_ENABLED": "false", "FLEETHEALTH_WS_MAX_INFLIGHT": "5",
+                         "FLEETHEALTH_WS_SLOW_DOWN_FRAMES": "6", "FLEETHEALTH_WS_MAX_QUEUED_FRAMES": "8",
                          "FLEETHEALTH_SHUTDOWN_TIMEOUT_S": "1"})
     server.start()
     yield server
     server.stop()
 
 
-def test_back_pressure_stops_reading_at_the_window_and_drops_nothing(paused_server: LiveServer) -> None:
+def test_throttled_stream_keeps_answering_keepalive_and_drops_nothing(paused_server: LiveServer) -> None:
     server = paused_server
     _setup(server, "bp")
     series = make_series(40 * 50, seed=3)
     frames = frames_of(series.t_s, {"current": series.current, "voltage": series.voltage}, 50)
     url = ws_url(server.url, f"/v1/aircraft/{TAIL}/actuators/bp/stream")
 
-    async def flood() -> tuple[list[dict[str, Any]], int]:
-        async with connect(url, additional_headers=server.headers) as ws:
+    async def until_slow_down() -> list[dict[str, Any]]:
+        async with connect(url, additional_headers=server.headers, ping_interval=None) as ws:
             assert orjson.loads(await ws.recv())["max_inflight"] == 5
-
-            async def send_all() -> int:
-                n = 0
-                for k, (t, c) in enumerate(frames):
-                    await ws.send(encode_frame(k + 1, c, t_s=t))
-                    n += 1
-                return n
-
-            sender = asyncio.create_task(send_all())
             msgs: list[dict[str, Any]] = []
-            with pytest.raises(TimeoutError):
-                while True:  # bounded: ends when the server stays silent for 2 s
-                    msgs.append(orjson.loads(await asyncio.wait_for(ws.recv(), 2.0)))
-            sender.cancel()
-            ws.transport.abort()  # the server is not reading: a close handshake would stall
-            return msgs, len(msgs)
+            for k, (t, c) in enumerate(frames):
+                await ws.send(encode_frame(k + 1, c, t_s=t))
+                # The server reads on: every frame gets an answer or a slow_down before long.
+                while len(msgs) < k + 1 and not any(m["type"] == "slow_down" for m in msgs):
+                    try:
+                        msgs.append(orjson.loads(await asyncio.wait_for(ws.recv(), 2.0)))
+                    except TimeoutError:
+                        break  # queued behind the full window: not logged, no answer yet
+                if any(m["type"] == "slow_down" for m in msgs):
+                    break
+            # Throttled, not stalled: the server still reads the socket, so a keepalive ping
+            # is answered (the old back-pressure stopped reading and pings timed out).
+            for _ in range(3):
+                await asyncio.wait_for(await ws.ping(), 10.0)
+            ws.transport.abort()
+            return msgs
 
-    msgs, _ = asyncio.run(flood())
-    logged = [m for m in msgs if m["type"] == "logged"]
-    assert [m["client_seq"] for m in logged] == [1, 2, 3, 4, 5]
-    assert [m["type"] for m in msgs].count("slow_down") == 1
-    assert _health(server, "bp")["last_logged_seq"] == 5
+    msgs = asyncio.run(until_slow_down())
+    logged = [m["client_seq"] for m in msgs if m["type"] == "logged"]
+    slow = [m for m in msgs if m["type"] == "slow_down"]
+    assert logged == [1, 2, 3, 4, 5] and len(slow) == 1, msgs
+    assert slow[0]["inflight"] == 5 and slow[0]["queued"] == 1 and "rate_hz" in slow[0]
+    assert _health(server, "bp")["last_logged_seq"] == 5  # the queued frame was never acknowledged
 
     # Nothing was silently dropped: with processing back, a resuming client finishes the stream.
     server.stop()
@@ -326,6 +329,41 @@ def test_back_pressure_stops_reading_at_the_window_and_drops_nothing(paused_serv
     first = (fs.ready["last_applied_client_seq"] or 0) + 1
     assert [r["client_seq"] for r in fs.stats.results] == list(range(first, 41))
     assert _health(server, "bp")["last_applied_seq"] == 40
+    assert fs.stats.connects == 1
+
+
+@pytest.fixture
+def throttling_server(tmp_path: Path) -> Any:
+    from app.migrate import upgrade
+
+    url = f"sqlite:///{tmp_path / 'th.db'}"
+    upgrade(url)
+    server = LiveServer(url, tmp_path / "server.log",
+                        {"FLEETHEALTH_WS_MAX_INFLIGHT": "2", "FLEETHEALTH_WS_SLOW_DOWN_FRAMES": "4",
+                         "FLEETHEALTH_WS_MAX_QUEUED_FRAMES": "8"})
+    server.start()
+    yield server
+    server.stop()
+
+
+def test_a_fast_sender_is_slowed_down_and_resumed_not_dropped(throttling_server: LiveServer) -> None:
+    server = throttling_server
+    _setup(server, "fast")
+    series = make_series(60 * 200, seed=4)
+    frames = frames_of(series.t_s, {"current": series.current, "voltage": series.voltage}, 200)
+
+    async def run() -> FrameStreamer:
+        async with FrameStreamer(server.url, server.api_key, TAIL, "fast") as fs:
+            for t, c in frames:
+                await fs.send(c, t_s=t)
+            await fs.drain(120)
+            return fs
+
+    fs = asyncio.run(run())
+    assert fs.stats.connects == 1  # backed off, never reconnected
+    assert fs.stats.slow_downs >= 1 and fs.stats.resumes >= 1
+    assert [r["client_seq"] for r in fs.stats.results] == list(range(1, 61))
+    assert _health(server, "fast")["last_applied_seq"] == 60
 
 
 def _status_flip_batch(n: int = 800) -> dict[str, Any]:
@@ -426,7 +464,9 @@ def test_a_slow_subscriber_is_dropped_and_does_not_slow_ingest(small_queue_serve
         sock = socket.socket()
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
         sock.connect(("127.0.0.1", port))
-        slow = await connect(url, additional_headers=server.headers, sock=sock, max_queue=1)
+        # Its own keepalive is off as well: it reads nothing (not even pongs) for as long as
+        # ingest takes, and must not give up before the server's 1013.
+        slow = await connect(url, additional_headers=server.headers, sock=sock, max_queue=1, ping_interval=None)
         fast = await connect(url, additional_headers=server.headers)
         fast_seen = 0
 

@@ -18,7 +18,7 @@ Telemetry encodings are described in :mod:`fleethealth_client.encoding`; ``fmt="
 default, the most compact) and ``fmt="csv"`` need pyarrow (the ``arrow`` extra).
 
 Retries: connection errors, timeouts, 429 and 5xx answers are retried a bounded number of times with
-exponential backoff (:class:`~fleethealth_client.retry.RetryPolicy`), always with the same request
+exponential backoff, or after the server's ``Retry-After`` (:class:`~fleethealth_client.retry.RetryPolicy`), always with the same request
 (and so the same batch id): the server applies a batch id once and answers a repeat with the first
 answer. 4xx answers raise :class:`~fleethealth_client.errors.ApiError` at once.
 """
@@ -234,6 +234,7 @@ class FleetHealthClient:
         retry = self._core.retry
         for attempt in range(retry.max_retries + 1):
             last = attempt == retry.max_retries
+            retry_after = None
             try:
                 response = self._http.request(**self._core.kwargs(request, self.timeout))
             except httpx.TransportError:
@@ -242,7 +243,8 @@ class FleetHealthClient:
             else:
                 if last or not retry.should_retry_status(response.status_code):
                     return self._core.parse(request, response)
-            time.sleep(retry.delay_s(attempt))
+                retry_after = response.headers.get("retry-after")
+            time.sleep(retry.delay_s(attempt, retry_after))
         raise AssertionError("unreachable")  # pragma: no cover
 
     # -- probes -------------------------------------------------------------------------------
@@ -446,6 +448,7 @@ class AsyncFleetHealthClient:
         retry = self._core.retry
         for attempt in range(retry.max_retries + 1):
             last = attempt == retry.max_retries
+            retry_after = None
             try:
                 response = await self._http.request(**self._core.kwargs(request, self.timeout))
             except httpx.TransportError:
@@ -454,7 +457,8 @@ class AsyncFleetHealthClient:
             else:
                 if last or not retry.should_retry_status(response.status_code):
                     return self._core.parse(request, response)
-            await asyncio.sleep(retry.delay_s(attempt))
+                retry_after = response.headers.get("retry-after")
+            await asyncio.sleep(retry.delay_s(attempt, retry_after))
         raise AssertionError("unreachable")  # pragma: no cover
 
     async def healthz(self) -> JsonObject:

@@ -26,7 +26,7 @@ from typing import Any
 import orjson
 from numpy.typing import ArrayLike
 from websockets.asyncio.client import ClientConnection, connect
-from websockets.exceptions import ConnectionClosed, InvalidStatus
+from websockets.exceptions import ConnectionClosed, InvalidHandshake
 
 from fleethealth_client.arrow import ipc_stream
 from fleethealth_client.columns import TIME_COLUMN, FloatArray, as_float_columns, time_params
@@ -47,6 +47,10 @@ __all__ = [
 REFUSAL_CODES = frozenset({1003, 1007, 1008, 1009})
 #: Delays between reconnection attempts (seconds); the last one repeats.
 RECONNECT_DELAYS_S = (0.1, 0.25, 0.5, 1.0, 2.0, 5.0)
+#: Failures of a connection attempt that another attempt may not meet: refused or reset TCP,
+#: a handshake cut short or garbled (``InvalidMessage``, e.g. a server dying mid-handshake), an
+#: HTTP status instead of the upgrade (``InvalidStatus``, e.g. a proxy's 502), a timeout.
+RECONNECTABLE: tuple[type[BaseException], ...] = (OSError, EOFError, ConnectionClosed, InvalidHandshake, TimeoutError)
 #: Reconnection attempts before giving up.
 MAX_RECONNECTS = 20
 #: Seconds to open a connection and receive the server's ``ready``.
@@ -94,7 +98,10 @@ class StreamStats:
         frames_sent: frames handed to :meth:`FrameStreamer.send` (each sent again after a
             reconnection is counted once).
         duplicates: frames the server answered as already logged.
-        slow_downs: back-pressure notices received.
+        slow_downs: ``slow_down`` notices received (the server's queue for this connection,
+            or its process-wide one, filled up).
+        resumes: ``resume`` notices received.
+        throttled_s: seconds :meth:`FrameStreamer.send` waited because of them.
         results: the ``result`` messages pushed back, in order of arrival.
     """
 
@@ -102,6 +109,8 @@ class StreamStats:
     frames_sent: int = 0
     duplicates: int = 0
     slow_downs: int = 0
+    resumes: int = 0
+    throttled_s: float = 0.0
     results: list[dict[str, Any]] = field(default_factory=list)
 
 
@@ -152,6 +161,16 @@ class FrameStreamer:
         self._reader: asyncio.Task[None] | None = None
         self._changed = asyncio.Event()
         self._failure: BaseException | None = None
+        # Between the server's slow_down and resume: send at most advised_rate_hz frames/s
+        # (no frame at all when the server could not say a rate) instead of reconnecting.
+        self._paused = False
+        self._advised_rate_hz: float | None = None
+        self._last_send = 0.0
+        # Frames sent and not logged yet are at most what the server reads ahead
+        # (ready.max_queued_frames / max_queued_bytes): it then never has to stop reading,
+        # so keepalive pings keep flowing however far the stream is throttled.
+        self._max_unlogged: int | None = None
+        self._max_unlogged_bytes: int | None = None
 
     # ------------------------------------------------------------------ connection
     async def __aenter__(self) -> FrameStreamer:
@@ -169,7 +188,7 @@ class FrameStreamer:
                 return await self._connect()
             except StreamRefused:
                 raise
-            except (OSError, ConnectionClosed, InvalidStatus, TimeoutError) as exc:
+            except RECONNECTABLE as exc:
                 if attempt >= self.max_reconnects:
                     raise ConnectionError(f"could not connect to {self.url}: {exc}") from exc
                 await asyncio.sleep(self.delays[min(attempt, len(self.delays) - 1)])
@@ -201,6 +220,9 @@ class FrameStreamer:
         # Results of frames applied while disconnected are in the store, not pushed again.
         self._awaiting = {s for s in self._awaiting if s > last_applied}
         self._failure = None
+        self._paused = False
+        self._max_unlogged = ready.get("max_queued_frames")
+        self._max_unlogged_bytes = ready.get("max_queued_bytes")
         self._reader = asyncio.create_task(self._read(ws))
         for frame in list(self._unlogged.values()):
             await ws.send(frame)
@@ -245,6 +267,11 @@ class FrameStreamer:
                     self.stats.results.append(msg)
                 elif kind == "slow_down":
                     self.stats.slow_downs += 1
+                    self._paused = True
+                    self._advised_rate_hz = msg.get("rate_hz")
+                elif kind == "resume":
+                    self.stats.resumes += 1
+                    self._paused = False
                 elif kind == "error":
                     error = msg
                 self._changed.set()
@@ -279,12 +306,15 @@ class FrameStreamer:
         t0: float | None = None,
         sample_rate_hz: float | None = None,
     ) -> int:
-        """Send the next frame; returns its client sequence number. Blocks while the server
-        pushes back (its in-flight window is full)."""
+        """Send the next frame; returns its client sequence number. After the server's
+        ``slow_down`` it paces frames at the advised rate until ``resume``; it blocks, too,
+        when the server stops reading (a queue bound reached)."""
+        await self._throttle()
         seq = self._next_seq
         frame = encode_frame(
             seq, channels, t_s=t_s, t0=t0, sample_rate_hz=sample_rate_hz, binary=self.binary
         )
+        await self._room_for(len(frame))
         self._next_seq += 1
         self._unlogged[seq] = frame
         self.stats.frames_sent += 1
@@ -292,11 +322,43 @@ class FrameStreamer:
             ws = await self._ensure_open()
             try:
                 await ws.send(frame)
+                self._last_send = asyncio.get_running_loop().time()
                 return seq
             except ConnectionClosed:
                 await asyncio.sleep(0)  # the reader records why; _ensure_open reconnects
                 if self._failure is None:
                     self._failure = ConnectionError("connection closed while sending")
+
+    async def _room_for(self, n_bytes: int) -> None:
+        """Wait until one more unlogged frame stays within the server's read-ahead bounds."""
+        while self._failure is None and self._unlogged and (
+            (self._max_unlogged is not None and len(self._unlogged) >= self._max_unlogged)
+            or (
+                self._max_unlogged_bytes is not None
+                and sum(len(f) for f in self._unlogged.values()) + n_bytes > self._max_unlogged_bytes
+            )
+        ):
+            self._changed.clear()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._changed.wait(), 1.0)
+
+    async def _throttle(self) -> None:
+        """While the server says ``slow_down``: wait until the next frame is due at its advised
+        rate, or until it says ``resume`` (or the connection drops: reconnecting resets it)."""
+        loop = asyncio.get_running_loop()
+        start = loop.time()
+        while self._paused and self._failure is None:
+            rate = self._advised_rate_hz
+            wait_s = 1.0
+            if rate:
+                due = self._last_send + 1.0 / rate
+                if loop.time() >= due:
+                    break
+                wait_s = due - loop.time()
+            self._changed.clear()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._changed.wait(), wait_s)
+        self.stats.throttled_s += loop.time() - start
 
     async def drain(self, timeout_s: float = DRAIN_TIMEOUT_S) -> list[dict[str, Any]]:
         """Wait until every frame sent is logged and its result pushed (reconnecting as
