@@ -2,12 +2,15 @@
 
 SQLite runs in WAL mode. Write transactions start with ``BEGIN IMMEDIATE`` so that two writers
 never both hold a read snapshot and then fail to upgrade; read transactions stay deferred so that
-readers never wait on writers. On PostgreSQL the per-stream lease is a row lock
+readers never wait on writers. SQLite has one write lock per file: within a process, writers
+queue for it on a mutex (woken the moment it is free) instead of polling the file lock through
+``busy_timeout``; the log writer and the processor are the only frequent writers. On PostgreSQL the per-stream lease is a row lock
 (``SELECT ... FOR UPDATE``) on the actuator row.
 """
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -87,6 +90,8 @@ class Database:
             if self.is_sqlite
             else self.engine
         )
+        # Re-entrant: a write nested in another on the same thread must not deadlock on itself.
+        self._write_mutex: threading.RLock | None = threading.RLock() if self.is_sqlite else None
         self._read = sessionmaker(bind=self.engine, expire_on_commit=False)
         self._write = sessionmaker(bind=write_bind, expire_on_commit=False)
 
@@ -98,7 +103,11 @@ class Database:
     @contextmanager
     def write(self) -> Iterator[Session]:
         """One unit of work: committed when the block exits, rolled back on an exception."""
-        with self._write() as session, session.begin():
+        if self._write_mutex is None:
+            with self._write() as session, session.begin():
+                yield session
+            return
+        with self._write_mutex, self._write() as session, session.begin():
             yield session
 
     def dispose(self) -> None:

@@ -58,6 +58,8 @@ class ApplyResult:
     # Status before and after this transaction (fleet subscribers hear about changes).
     status_before: str = "learning"
     status_after: str = "learning"
+    # More batches were pending than one apply takes (apply the stream again).
+    more: bool = False
 
 
 def decode(row: TelemetryBatch) -> LoggedBatch:
@@ -105,7 +107,7 @@ def apply_pending(
     stream = repository.claim(session, actuator_pk, is_sqlite=is_sqlite)
     if stream is None or stream.failure is not None:
         return None
-    pending = repository.pending_batches(session, stream, max_samples=max_samples, max_batches=max_batches)
+    pending, more = repository.pending_batches(session, stream, max_samples=max_samples, max_batches=max_batches)
     if not pending:
         return None
     est_rows = repository.estimators(session, actuator_pk)
@@ -139,6 +141,7 @@ def apply_pending(
         applied=step.results,
         status_before=status_before,
         status_after=stream.status,
+        more=more,
     )
 
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from sqlalchemy import select
+from sqlalchemy import select, text
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -28,7 +28,17 @@ def add_batch(session: Session, row: TelemetryBatch) -> bool:
     return True
 
 
-def actuator_for_update(session: Session, actuator_pk: int) -> Actuator | None:
-    """The actuator row, locked for this transaction (SQLite: ``BEGIN IMMEDIATE`` serializes
-    writers already and ignores the clause)."""
-    return session.get(Actuator, actuator_pk, with_for_update=True)
+def actuators_for_update(session: Session, actuator_pks: list[int]) -> dict[int, Actuator]:
+    """The actuator rows, locked for this transaction in primary-key order (two writers that
+    lock overlapping sets in the same order cannot deadlock)."""
+    if not actuator_pks:
+        return {}
+    rows = session.scalars(
+        select(Actuator).where(Actuator.id.in_(actuator_pks)).order_by(Actuator.id).with_for_update()
+    )
+    return {a.id: a for a in rows}
+
+
+def notify(session: Session, channel: str, payload: str) -> None:
+    """PostgreSQL ``NOTIFY``, delivered when (and only if) this transaction commits."""
+    session.execute(text("SELECT pg_notify(:channel, :payload)"), {"channel": channel, "payload": payload})
