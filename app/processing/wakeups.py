@@ -73,7 +73,7 @@ class Listener:
         on_logged: Callable[[Sequence[int]], None] | None = None,
         on_applied: Callable[[int, int, list[dict[str, Any]]], None] | None = None,
         on_failed: Callable[[int, str], None] | None = None,
-        on_resync: Callable[[], None] | None = None,
+        on_resync: Callable[[], object] | None = None,
         origin: str = ORIGIN,
     ) -> None:
         self.url = libpq_url(database_url)
