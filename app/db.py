@@ -74,7 +74,11 @@ def _install_sqlite_hooks(engine: Engine, synchronous: str) -> None:
 
     @event.listens_for(engine, "begin")
     def _begin(conn: Any) -> None:
-        mode = conn.get_execution_options().get("sqlite_begin", "DEFERRED")
+        opts = conn.get_execution_options()
+        mode = opts.get("sqlite_begin", "DEFERRED")
+        if mode == "IMMEDIATE":
+            # Per transaction (it cannot change inside one): see Database.write(durable=...).
+            conn.exec_driver_sql(f"PRAGMA synchronous={opts.get('sqlite_synchronous', synchronous)}")
         conn.exec_driver_sql(f"BEGIN {mode}")
 
 
@@ -94,6 +98,11 @@ class Database:
         self._write_mutex: threading.RLock | None = threading.RLock() if self.is_sqlite else None
         self._read = sessionmaker(bind=self.engine, expire_on_commit=False)
         self._write = sessionmaker(bind=write_bind, expire_on_commit=False)
+        # Writes whose loss in a power cut is harmless (they are recomputed from what is durable).
+        self._write_recomputable = sessionmaker(
+            bind=write_bind.execution_options(sqlite_synchronous="NORMAL") if self.is_sqlite else self.engine,
+            expire_on_commit=False,
+        )
 
     @contextmanager
     def read(self) -> Iterator[Session]:
@@ -101,13 +110,24 @@ class Database:
             yield session
 
     @contextmanager
-    def write(self) -> Iterator[Session]:
-        """One unit of work: committed when the block exits, rolled back on an exception."""
+    def write(self, *, durable: bool = True) -> Iterator[Session]:
+        """One unit of work: committed when the block exits, rolled back on an exception.
+
+        ``durable=False`` is for transactions that can be lost in an operating-system crash or a
+        power cut without harm, because they are recomputed from durable data (an apply is redone
+        from the telemetry log): the commit does not wait for the disk (SQLite WAL
+        ``synchronous=NORMAL``, PostgreSQL ``synchronous_commit=off``). Commits stay ordered: a
+        later durable commit makes every earlier one durable too, and a process crash loses
+        nothing that committed.
+        """
+        factory = self._write if durable else self._write_recomputable
         if self._write_mutex is None:
-            with self._write() as session, session.begin():
+            with factory() as session, session.begin():
+                if not durable:
+                    session.connection().exec_driver_sql("SET LOCAL synchronous_commit TO OFF")
                 yield session
             return
-        with self._write_mutex, self._write() as session, session.begin():
+        with self._write_mutex, factory() as session, session.begin():
             yield session
 
     def dispose(self) -> None:

@@ -64,6 +64,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             on_logged=processor.notify_many,
             notify_channel=chans.logged if chans else None,
             origin=wakeups.ORIGIN,
+            recent=processor.recent,
         )
         writer.start()
         listener = None

@@ -192,6 +192,13 @@ def _stop(process: subprocess.Popen[bytes]) -> None:
         process.wait(timeout=10)
 
 
+def tree_cpu_s(pid: int) -> float:
+    """CPU seconds (user + system) used so far by a process and its threads, from /proc: on a
+    machine shared with other work, CPU per request is steadier than wall-clock rates."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def tree_rss_bytes(pid: int) -> int:
     """Resident memory of a process and its descendants, from /proc."""
     children: dict[int, list[int]] = {}
@@ -542,14 +549,25 @@ def run_backend(
             if args.post1 > 0:
                 tail = f"BP-{run_id}"
                 client.create_aircraft(tail)
+                pid = server.process.pid
+                cpu0 = tree_cpu_s(pid)
                 rate["post1_sequential"] = bench_post1_sequential(server, tail, args.post1, args.timeout_s)
+                cpu1 = tree_cpu_s(pid)
                 rate["post1_concurrent"] = bench_post1_concurrent(
                     server, tail, args.post1_clients, args.post1_per_client, args.timeout_s
                 )
+                cpu2 = tree_cpu_s(pid)
                 rate["plain_write"] = bench_plain_write(server, f"W{run_id}-", max(50, args.post1 // 4))
+                cpu3 = tree_cpu_s(pid)
+                # Server CPU per request, the apply of each sample included (sequential case:
+                # measured until the last one is applied).
+                for name, used in (("post1_sequential", cpu1 - cpu0), ("post1_concurrent", cpu2 - cpu1),
+                                   ("plain_write", cpu3 - cpu2)):
+                    rate[name]["server_cpu_ms"] = 1e3 * used / rate[name]["requests"]
                 for name, fig in rate.items():
                     print(f"[{backend}] {name}: {fig['per_s']:,.0f} requests/s, median "
-                          f"{fig['median_ms']:.2f} ms, p99 {fig['p99_ms']:.2f} ms", flush=True)
+                          f"{fig['median_ms']:.2f} ms, p99 {fig['p99_ms']:.2f} ms, server CPU "
+                          f"{fig['server_cpu_ms']:.2f} ms/request", flush=True)
 
             tail = f"BS-{run_id}"
             client.create_aircraft(tail)
@@ -595,9 +613,12 @@ def print_table(results: dict[str, dict]) -> None:
         ("post1_sequential", "per_s", "1 client, sequential: requests/s", None),
         ("post1_sequential", "median_ms", "1 client, sequential: median ms", "<= 2 ms"),
         ("post1_sequential", "p99_ms", "1 client, sequential: p99 ms", None),
+        ("post1_sequential", "server_cpu_ms", "1 client: server CPU ms/request", None),
         ("post1_concurrent", "per_s", "32 clients: requests/s", ">= 3,000/s"),
         ("post1_concurrent", "median_ms", "32 clients: median ms", None),
+        ("post1_concurrent", "server_cpu_ms", "32 clients: server CPU ms/request", None),
         ("plain_write", "median_ms", "plain write, sequential: median ms", None),
+        ("plain_write", "server_cpu_ms", "plain write: server CPU ms/request", None),
     ]
     for key, field, text, goal in cases:
         vals = [results[lab].get("rate", {}).get(key, {}).get(field) for lab in labels]

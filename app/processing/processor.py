@@ -49,6 +49,7 @@ from app.config import Settings
 from app.db import Database
 from app.processing import repository, service
 from app.processing.orchestration import StateUnreadable
+from app.processing.recent import RecentBatches
 from app.processing.service import ApplyResult
 from app.websocket.hub import Hub, StreamMeta, fleet_events
 
@@ -100,6 +101,8 @@ class Processor:
         origin: str = "",
     ) -> None:
         self.db = db
+        # Batches this process logged, decoded (the log writer fills it when this process applies).
+        self.recent = RecentBatches() if settings.processor_enabled else None
         self.settings = settings
         self.hub = hub or Hub()
         # PostgreSQL: the channel on which applies are announced to other processes.
@@ -216,7 +219,8 @@ class Processor:
         budget = self.settings.processor_max_samples_per_txn
         left: list[int] = []
         try:
-            with self.db.write() as s:
+            # Not waiting for the disk: an apply lost in a power cut is redone from the log.
+            with self.db.write(durable=False) as s:
                 for i, pk in enumerate(pks):
                     if budget <= 0:
                         left = pks[i:]
@@ -230,6 +234,7 @@ class Processor:
                                 max_batches=self.settings.processor_max_batches_per_txn,
                                 store_outputs=self.settings.store_sample_outputs,
                                 is_sqlite=self.db.is_sqlite,
+                                recent=self.recent,
                             )
                     except Exception as exc:  # this stream's savepoint is rolled back
                         errors.append((pk, exc))

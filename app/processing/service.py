@@ -40,6 +40,7 @@ from app.processing.orchestration import (
     most_urgent_rul,
     run_estimators,
 )
+from app.processing.recent import RecentBatches
 from estimators.base import Batch, worst_status
 
 # Batches read per query, when applying and when replaying the log.
@@ -62,18 +63,22 @@ class ApplyResult:
     more: bool = False
 
 
-def decode(row: TelemetryBatch) -> LoggedBatch:
-    if row.payload is None:
-        raise LookupError(f"batch seq {row.seq} has no payload in the log")
-    cols = decode_columns(row.payload)
-    t_s = cols.pop(TIME_COLUMN)
+def decode(row: TelemetryBatch, recent: RecentBatches | None = None) -> LoggedBatch:
+    """A logged batch, decoded (taken from ``recent`` when this process just logged it)."""
+    batch = recent.take(row.actuator_pk, row.seq) if recent is not None else None
+    if batch is None:
+        if row.payload is None:
+            raise LookupError(f"batch seq {row.seq} has no payload in the log")
+        cols = decode_columns(row.payload)
+        t_s = cols.pop(TIME_COLUMN)
+        batch = Batch(t_s=t_s, channels=cols, end_of_run=row.end_of_run)
     return LoggedBatch(
         seq=row.seq,
         batch_id=row.batch_id,
         t_first_s=row.t_first_s,
         t_last_s=row.t_last_s,
         n_samples=row.n_samples,
-        batch=Batch(t_s=t_s, channels=cols, end_of_run=row.end_of_run),
+        batch=batch,
     )
 
 
@@ -93,6 +98,7 @@ def apply_pending(
     store_outputs: bool,
     is_sqlite: bool,
     max_batches: int = MAX_BATCHES_PER_QUERY,
+    recent: RecentBatches | None = None,
 ) -> ApplyResult | None:
     """Apply the next pending batches of one stream inside the caller's transaction: claim,
     load, run the estimators (pure), store outputs, states and the applied mark together.
@@ -115,7 +121,8 @@ def apply_pending(
         make_runner(er.estimator, er.config, er.state, er.status, er.reasons, er.diagnosis_t_s, er.diagnosis)
         for er in est_rows
     ]
-    step = run_estimators(actuator_pk, runners, [decode(b) for b in pending], store_outputs=store_outputs)
+    batches = [decode(b, recent) for b in pending]
+    step = run_estimators(actuator_pk, runners, batches, store_outputs=store_outputs)
 
     now = utcnow()
     repository.insert_rows(session, step.rows)

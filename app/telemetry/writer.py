@@ -33,6 +33,7 @@ from prometheus_client import Histogram
 from app.db import Database
 from app.errors import DomainError, StaleBatch
 from app.ingest import ParsedBatch
+from app.processing.recent import RecentBatches
 from app.telemetry import repository
 
 if TYPE_CHECKING:
@@ -64,6 +65,7 @@ class LogWriter:
         on_logged: Callable[[Sequence[int]], None] | None = None,
         notify_channel: str | None = None,
         origin: str = "",
+        recent: RecentBatches | None = None,
     ) -> None:
         self.db = db
         self.max_group = max_group
@@ -71,6 +73,8 @@ class LogWriter:
         # PostgreSQL: NOTIFY channel for the wake-ups of worker processes (None on SQLite).
         self.notify_channel = notify_channel
         self.origin = origin
+        # The in-process processor's shortcut: committed batches, already decoded.
+        self.recent = recent
         self._queue: queue.SimpleQueue[_Append | None] = queue.SimpleQueue()
         self._thread: threading.Thread | None = None
         self._stopping = False
@@ -133,9 +137,12 @@ class LogWriter:
             if isinstance(outcome, DomainError):
                 item.future.set_exception(outcome)
             else:
-                item.future.set_result(outcome)
                 if not outcome.replayed:
                     logged.append(item.actuator_pk)
+                    if self.recent is not None:
+                        b = item.batch
+                        self.recent.put(item.actuator_pk, outcome.seq, b.t_s, b.channels, b.end_of_run)
+                item.future.set_result(outcome)
         if logged and self.on_logged is not None:
             try:
                 self.on_logged(sorted(set(logged)))

@@ -148,9 +148,9 @@ def test_many_streams_applied_in_one_transaction_and_a_failing_one_alone_rolls_b
     writes: list[int] = []
     real_write = db.write
 
-    def counting_write():  # type: ignore[no-untyped-def]
+    def counting_write(**kw):  # type: ignore[no-untyped-def]
         writes.append(1)
-        return real_write()
+        return real_write(**kw)
 
     monkeypatch.setattr(db, "write", counting_write)
     applied = processor.apply_streams([pks[a] for a in acts])
