@@ -36,6 +36,9 @@ class Settings(BaseSettings):
     processor_max_batches_per_txn: int = Field(default=256, gt=0)
     # Group commit of applies: streams applied in one transaction (each in its own savepoint).
     processor_max_streams_per_txn: int = Field(default=64, gt=0)
+    # ... and no more streams join a transaction once it has run this long (it holds the write
+    # lock that acknowledgements wait for).
+    processor_txn_budget_s: float = Field(default=0.005, gt=0)
     # Group commit of the telemetry log: appends committed in one transaction at most.
     log_writer_max_group: int = Field(default=256, gt=0)
     # PostgreSQL: wake-ups, applied marks and fleet events cross processes by LISTEN/NOTIFY

@@ -3,8 +3,9 @@
 SQLite runs in WAL mode. Write transactions start with ``BEGIN IMMEDIATE`` so that two writers
 never both hold a read snapshot and then fail to upgrade; read transactions stay deferred so that
 readers never wait on writers. SQLite has one write lock per file: within a process, writers
-queue for it on a mutex (woken the moment it is free) instead of polling the file lock through
-``busy_timeout``; the log writer and the processor are the only frequent writers. On PostgreSQL the per-stream lease is a row lock
+queue for it on a mutex (woken the moment it is free, in arrival order) instead of polling the
+file lock through ``busy_timeout``; the log writer and the processor are the only frequent
+writers. On PostgreSQL the per-stream lease is a row lock
 (``SELECT ... FOR UPDATE``) on the actuator row.
 """
 
@@ -82,6 +83,43 @@ def _install_sqlite_hooks(engine: Engine, synchronous: str) -> None:
         conn.exec_driver_sql(f"BEGIN {mode}")
 
 
+class FairWriteLock:
+    """A re-entrant lock granted in arrival order (tickets).
+
+    ``threading.RLock`` lets the thread that releases it take it straight back: the processor,
+    applying transaction after transaction, would starve the log writer (and every
+    acknowledgement behind it). With tickets, a writer that queued is served before the next
+    transaction of the thread that just committed.
+    """
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition(threading.Lock())
+        self._next_ticket = 0
+        self._serving = 0
+        self._owner: int | None = None
+        self._depth = 0
+
+    def __enter__(self) -> None:
+        me = threading.get_ident()
+        with self._cond:
+            if self._owner == me:
+                self._depth += 1
+                return
+            ticket = self._next_ticket
+            self._next_ticket += 1
+            while self._serving != ticket:
+                self._cond.wait()
+            self._owner, self._depth = me, 1
+
+    def __exit__(self, *exc: object) -> None:
+        with self._cond:
+            self._depth -= 1
+            if self._depth == 0:
+                self._owner = None
+                self._serving += 1
+                self._cond.notify_all()
+
+
 class Database:
     """Owns the engine and the two session factories (read and write)."""
 
@@ -94,8 +132,9 @@ class Database:
             if self.is_sqlite
             else self.engine
         )
-        # Re-entrant: a write nested in another on the same thread must not deadlock on itself.
-        self._write_mutex: threading.RLock | None = threading.RLock() if self.is_sqlite else None
+        # Re-entrant (a write nested in another on the same thread must not deadlock on itself)
+        # and first come, first served.
+        self._write_mutex: FairWriteLock | None = FairWriteLock() if self.is_sqlite else None
         self._read = sessionmaker(bind=self.engine, expire_on_commit=False)
         self._write = sessionmaker(bind=write_bind, expire_on_commit=False)
         # Writes whose loss in a power cut is harmless (they are recomputed from what is durable).

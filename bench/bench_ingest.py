@@ -690,12 +690,25 @@ def main(argv: list[str] | None = None) -> int:
         runs: list[tuple[str, Path | None]] = [("", None)]
         if args.baseline is not None:
             runs = [(" base", args.baseline.resolve()), (" new", None)]
-        for suffix, source in runs:
+
+        def backend_runs(suffix: str, source: Path | None) -> None:
             if not args.no_sqlite:
                 url = f"sqlite:///{workdir / f'bench{suffix.strip()}.db'}"
                 results[f"sqlite{suffix}"] = run_backend(f"sqlite{suffix}", url, workdir, args, source)
             if args.pg:
                 results[f"postgres{suffix}"] = run_backend(f"postgres{suffix}", args.pg, workdir, args, source)
+
+        # Base and new at the same time, so that whatever else loads the machine weighs on both
+        # alike (one after the other, a change of load would read as a change of speed).
+        import threading
+
+        threads = [threading.Thread(target=backend_runs, args=run) for run in runs]
+        for th in threads:
+            th.start()
+        for th in threads:
+            th.join()
+        order = [f"{b}{suffix}" for b in ("sqlite", "postgres") for suffix, _ in runs]
+        results = {k: results[k] for k in order if k in results}
     print_table(results)
     if args.json_out:
         args.json_out.parent.mkdir(parents=True, exist_ok=True)

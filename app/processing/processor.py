@@ -77,6 +77,8 @@ BUSY_RECHECK_S = 0.02
 NOTIFY_MAX_BYTES = 7000
 # Owners (operator, tail, actuator id) of the streams applied lately, for fleet events.
 STREAM_META_CACHE = 4096
+# Applied marks remembered for ?wait= without a read.
+APPLIED_MARKS_CACHE = 4096
 
 
 @dataclass(frozen=True)
@@ -110,7 +112,10 @@ class Processor:
         self.origin = origin
         self._meta: OrderedDict[int, StreamMeta] = OrderedDict()
         self._queue: queue.SimpleQueue[int | None] = queue.SimpleQueue()
-        self._applied: dict[int, int] = {}
+        # Latest applied marks seen here, so that a ?wait= on a batch already applied needs no
+        # read; bounded (the store has the rest).
+        self._applied: OrderedDict[int, int] = OrderedDict()
+        self._applied_lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._attempts: dict[int, int] = {}
@@ -161,6 +166,14 @@ class Processor:
         finally:
             self.hub.unwatch(actuator_pk, waiter)
 
+    def _remember_applied(self, actuator_pk: int, applied_seq: int) -> None:
+        with self._applied_lock:  # the processor and the notification listener both call this
+            if applied_seq > self._applied.get(actuator_pk, 0):
+                self._applied[actuator_pk] = applied_seq
+            self._applied.move_to_end(actuator_pk)
+            while len(self._applied) > APPLIED_MARKS_CACHE:
+                self._applied.popitem(last=False)
+
     def _read_mark(self, actuator_pk: int) -> tuple[int, str | None]:
         with self.db.read() as s:
             return repository.applied_mark(s, actuator_pk)
@@ -168,8 +181,7 @@ class Processor:
     def applied_elsewhere(self, actuator_pk: int, applied_seq: int, events: list[dict[str, Any]]) -> None:
         """Another process committed an apply of the stream (its notification): waiters and
         stream connections hear of it, fleet subscribers get its events."""
-        if applied_seq > self._applied.get(actuator_pk, 0):
-            self._applied[actuator_pk] = applied_seq
+        self._remember_applied(actuator_pk, applied_seq)
         self.hub.mark_applied(actuator_pk, applied_seq)
         self.hub.wake_stream(actuator_pk)
         if events and self.hub.has_fleet_subscribers():
@@ -222,7 +234,9 @@ class Processor:
             # Not waiting for the disk: an apply lost in a power cut is redone from the log.
             with self.db.write(durable=False) as s:
                 for i, pk in enumerate(pks):
-                    if budget <= 0:
+                    # The transaction holds the database's write lock (SQLite: the only one), so
+                    # the log writer's acknowledgements wait behind it: bound its length.
+                    if budget <= 0 or (i and time.perf_counter() - t0 > self.settings.processor_txn_budget_s):
                         left = pks[i:]
                         break
                     try:
@@ -259,7 +273,7 @@ class Processor:
             self._retry_at.pop(res.actuator_pk, None)
             BATCHES_APPLIED.inc(res.batches)
             SAMPLES_APPLIED.inc(res.samples)
-            self._applied[res.actuator_pk] = res.last_applied_seq
+            self._remember_applied(res.actuator_pk, res.last_applied_seq)
             self.hub.mark_applied(res.actuator_pk, res.last_applied_seq)
             self._publish(res)
             if res.more:
