@@ -652,7 +652,7 @@ def print_table(results: dict[str, dict]) -> None:
     print(f"For scale: NASA prog_server handles about {PROG_SERVER_SAMPLES_S} samples/s.")
     print(
         "Samples are time stamps carrying 2 channels. The client runs on the same 2 cores as the "
-        "server; 'base' is the --baseline source tree, 'new' this checkout, run one after the other."
+        "server; 'base' is the --baseline source tree, 'new' this checkout, both running at the same time."
     )
 
 

@@ -144,7 +144,8 @@ def test_many_streams_applied_in_one_transaction_and_a_failing_one_alone_rolls_b
         return out
 
     monkeypatch.setattr(fakf, "step", step)
-    processor = Processor(db, make_settings(db_url, processor_max_attempts=1))
+    # A generous time budget: the point is that the three streams share one transaction.
+    processor = Processor(db, make_settings(db_url, processor_max_attempts=1, processor_txn_budget_s=60.0))
     writes: list[int] = []
     real_write = db.write
 
