@@ -81,6 +81,50 @@ def cmd_serve(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_worker(args: argparse.Namespace) -> int:
+    """Apply pending batches in this process, next to any number of API and worker processes
+    sharing one PostgreSQL (docs/scaling.md)."""
+    import signal
+
+    from app.db import Database
+    from app.main import warm_kernels
+    from app.processing import wakeups
+    from app.processing.processor import Processor
+
+    s = _settings()
+    db = Database(s.database_url)
+    if db.is_sqlite:
+        db.dispose()
+        print("fleethealth worker needs PostgreSQL (FLEETHEALTH_DATABASE_URL); with SQLite the "
+              "processor runs inside `fleethealth serve`", file=sys.stderr)
+        return 2
+    if s.warm_kernels:
+        warm_kernels()
+    chans = wakeups.channels(db)
+    processor = Processor(db, s.model_copy(update={"processor_enabled": True}),
+                          applied_channel=chans.applied, origin=wakeups.ORIGIN)
+    listener = wakeups.Listener(s.database_url, chans, on_logged=processor.notify_many,
+                                on_resync=processor.recover)
+    stop = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop.set())
+    listener.start()
+    listener.listening.wait(30)
+    processor.start()
+    print(f"fleethealth worker {wakeups.ORIGIN} applying streams of {db.engine.url.render_as_string()}",
+          flush=True)
+    try:
+        while not stop.wait(1.0):
+            if not processor.running:
+                print("the processor thread stopped", file=sys.stderr)
+                return 1
+    finally:
+        listener.stop()
+        processor.stop(timeout=s.shutdown_timeout_s)
+        db.dispose()
+    return 0
+
+
 def _listen(host: str, port: int, send_buffer_bytes: int | None) -> socket.socket:
     """The listening socket. Accepted connections inherit its send buffer size, so a cap here
     bounds the kernel memory a slow reader can hold (and disables send-buffer autotuning)."""
@@ -249,6 +293,9 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--no-migrate", action="store_true", help="do not apply migrations first")
     sp.add_argument("--log-level", default="info")
     sp.set_defaults(func=cmd_serve)
+
+    sp = sub.add_parser("worker", help="apply pending batches (PostgreSQL; any number of workers)")
+    sp.set_defaults(func=cmd_worker)
 
     sp = sub.add_parser("migrate", help="apply database migrations up to head")
     sp.set_defaults(func=cmd_migrate)

@@ -1,5 +1,9 @@
 """Compact binary form of column blocks (telemetry log payloads and per-sample outputs):
-an Arrow IPC stream with zstd-compressed float64 buffers."""
+an Arrow IPC stream of float64 columns, zstd-compressed from :data:`COMPRESS_MIN_ROWS` rows.
+
+Below that, compression saves a few bytes and costs more than the rest of the encoding (setting
+up a zstd context per buffer: about 0.6 ms for a one-sample batch against 0.08 ms without); the
+reader tells both apart by the IPC message itself."""
 
 from __future__ import annotations
 
@@ -8,13 +12,16 @@ from collections.abc import Collection, Mapping
 import numpy as np
 import pyarrow as pa
 
-_WRITE_OPTIONS = pa.ipc.IpcWriteOptions(compression="zstd")
+COMPRESS_MIN_ROWS = 256
+_COMPRESSED = pa.ipc.IpcWriteOptions(compression="zstd")
+_PLAIN = pa.ipc.IpcWriteOptions()
 
 
 def encode_columns(columns: Mapping[str, np.ndarray]) -> bytes:
     table = pa.table({name: pa.array(np.asarray(col, dtype=np.float64)) for name, col in columns.items()})
     sink = pa.BufferOutputStream()
-    with pa.ipc.new_stream(sink, table.schema, options=_WRITE_OPTIONS) as writer:
+    options = _COMPRESSED if table.num_rows >= COMPRESS_MIN_ROWS else _PLAIN
+    with pa.ipc.new_stream(sink, table.schema, options=options) as writer:
         writer.write_table(table)
     return bytes(sink.getvalue().to_pybytes())
 

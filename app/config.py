@@ -34,6 +34,16 @@ class Settings(BaseSettings):
     processor_scan_interval_s: float = Field(default=2.0, gt=0)
     processor_max_samples_per_txn: int = Field(default=1_000_000, gt=0)
     processor_max_batches_per_txn: int = Field(default=256, gt=0)
+    # Group commit of applies: streams applied in one transaction (each in its own savepoint).
+    processor_max_streams_per_txn: int = Field(default=64, gt=0)
+    # ... and no more streams join a transaction once it has run this long (it holds the write
+    # lock that acknowledgements wait for).
+    processor_txn_budget_s: float = Field(default=0.005, gt=0)
+    # Group commit of the telemetry log: appends committed in one transaction at most.
+    log_writer_max_group: int = Field(default=256, gt=0)
+    # PostgreSQL: wake-ups, applied marks and fleet events cross processes by LISTEN/NOTIFY
+    # (needed when workers apply in other processes; "off" keeps them in this process).
+    pg_notify: Literal["on", "off"] = "on"
     # A stream whose apply raises is retried after processor_retry_backoff_s, doubling per
     # attempt up to processor_retry_backoff_max_s; after processor_max_attempts it is failed.
     processor_max_attempts: int = Field(default=5, gt=0)

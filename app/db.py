@@ -2,7 +2,10 @@
 
 SQLite runs in WAL mode. Write transactions start with ``BEGIN IMMEDIATE`` so that two writers
 never both hold a read snapshot and then fail to upgrade; read transactions stay deferred so that
-readers never wait on writers. On PostgreSQL the per-stream lease is a row lock
+readers never wait on writers. SQLite has one write lock per file: within a process, writers
+queue for it on a mutex (woken the moment it is free, in arrival order) instead of polling the
+file lock through ``busy_timeout``; the log writer and the processor are the only frequent
+writers. On PostgreSQL the per-stream lease is a row lock
 (``SELECT ... FOR UPDATE``) on the actuator row.
 """
 
@@ -74,7 +77,11 @@ def _install_sqlite_hooks(engine: Engine, synchronous: str) -> None:
 
     @event.listens_for(engine, "begin")
     def _begin(conn: Any) -> None:
-        mode = conn.get_execution_options().get("sqlite_begin", "DEFERRED")
+        opts = conn.get_execution_options()
+        mode = opts.get("sqlite_begin", "DEFERRED")
+        if mode == "IMMEDIATE":
+            # Per transaction (it cannot change inside one): see Database.write(durable=...).
+            conn.exec_driver_sql(f"PRAGMA synchronous={opts.get('sqlite_synchronous', synchronous)}")
         conn.exec_driver_sql(f"BEGIN {mode}")
 
 
@@ -107,6 +114,43 @@ class StorageHealth:
             return None
 
 
+class FairWriteLock:
+    """A re-entrant lock granted in arrival order (tickets).
+
+    ``threading.RLock`` lets the thread that releases it take it straight back: the processor,
+    applying transaction after transaction, would starve the log writer (and every
+    acknowledgement behind it). With tickets, a writer that queued is served before the next
+    transaction of the thread that just committed.
+    """
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition(threading.Lock())
+        self._next_ticket = 0
+        self._serving = 0
+        self._owner: int | None = None
+        self._depth = 0
+
+    def __enter__(self) -> None:
+        me = threading.get_ident()
+        with self._cond:
+            if self._owner == me:
+                self._depth += 1
+                return
+            ticket = self._next_ticket
+            self._next_ticket += 1
+            while self._serving != ticket:
+                self._cond.wait()
+            self._owner, self._depth = me, 1
+
+    def __exit__(self, *exc: object) -> None:
+        with self._cond:
+            self._depth -= 1
+            if self._depth == 0:
+                self._owner = None
+                self._serving += 1
+                self._cond.notify_all()
+
+
 class Database:
     """Owns the engine and the two session factories (read and write)."""
 
@@ -119,8 +163,16 @@ class Database:
             if self.is_sqlite
             else self.engine
         )
+        # Re-entrant (a write nested in another on the same thread must not deadlock on itself)
+        # and first come, first served.
+        self._write_mutex: FairWriteLock | None = FairWriteLock() if self.is_sqlite else None
         self._read = sessionmaker(bind=self.engine, expire_on_commit=False)
         self._write = sessionmaker(bind=write_bind, expire_on_commit=False)
+        # Writes whose loss in a power cut is harmless (they are recomputed from what is durable).
+        self._write_recomputable = sessionmaker(
+            bind=write_bind.execution_options(sqlite_synchronous="NORMAL") if self.is_sqlite else self.engine,
+            expire_on_commit=False,
+        )
         self.storage = StorageHealth()
 
         @event.listens_for(self.engine, "handle_error")
@@ -130,6 +182,7 @@ class Database:
                 self.storage.fault(f"{type(orig).__name__}: {str(orig).strip().splitlines()[0] if str(orig).strip() else ''}"[:300])
 
         @event.listens_for(self._write, "after_commit")
+        @event.listens_for(self._write_recomputable, "after_commit")
         def _committed(_: Session) -> None:
             self.storage.committed()
 
@@ -139,9 +192,24 @@ class Database:
             yield session
 
     @contextmanager
-    def write(self) -> Iterator[Session]:
-        """One unit of work: committed when the block exits, rolled back on an exception."""
-        with self._write() as session, session.begin():
+    def write(self, *, durable: bool = True) -> Iterator[Session]:
+        """One unit of work: committed when the block exits, rolled back on an exception.
+
+        ``durable=False`` is for transactions that can be lost in an operating-system crash or a
+        power cut without harm, because they are recomputed from durable data (an apply is redone
+        from the telemetry log): the commit does not wait for the disk (SQLite WAL
+        ``synchronous=NORMAL``, PostgreSQL ``synchronous_commit=off``). Commits stay ordered: a
+        later durable commit makes every earlier one durable too, and a process crash loses
+        nothing that committed.
+        """
+        factory = self._write if durable else self._write_recomputable
+        if self._write_mutex is None:
+            with factory() as session, session.begin():
+                if not durable:
+                    session.connection().exec_driver_sql("SET LOCAL synchronous_commit TO OFF")
+                yield session
+            return
+        with self._write_mutex, factory() as session, session.begin():
             yield session
 
     def dispose(self) -> None:

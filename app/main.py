@@ -1,4 +1,5 @@
-"""Application factory. The lifespan owns the database, the kernels and the processor."""
+"""Application factory. The lifespan owns the database, the kernels, the telemetry log writer, the
+processor and (PostgreSQL) the notification listener."""
 
 from __future__ import annotations
 
@@ -21,11 +22,13 @@ from app.events import router as events_router
 from app.faults import router as faults_router
 from app.fleet import router as fleet_router
 from app.health import router as health_router
+from app.processing import wakeups
 from app.processing.processor import Processor
 from app.streams import router as streams_router
 from app.system import router as system_router
 from app.telemetry import router as telemetry_router
 from app.telemetry.validation import ControlCharGuard
+from app.telemetry.writer import LogWriter
 from app.webhooks import router as webhooks_router
 from app.webhooks.deliverer import Deliverer
 from app.websocket import router as websocket_router
@@ -60,12 +63,35 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         db = Database(settings.database_url, sqlite_synchronous=settings.sqlite_synchronous)
-        processor = Processor(db, settings)
+        # PostgreSQL: wake-ups, applied marks and fleet events also cross processes (workers).
+        chans = wakeups.channels(db) if not db.is_sqlite and settings.pg_notify == "on" else None
+        processor = Processor(db, settings, applied_channel=chans.applied if chans else None, origin=wakeups.ORIGIN)
+        writer = LogWriter(
+            db,
+            max_group=settings.log_writer_max_group,
+            on_logged=processor.notify_many,
+            notify_channel=chans.logged if chans else None,
+            origin=wakeups.ORIGIN,
+            recent=processor.recent,
+        )
+        writer.start()
+        listener = None
+        if chans is not None:
+            listener = wakeups.Listener(
+                settings.database_url,
+                chans,
+                on_logged=processor.notify_many if settings.processor_enabled else None,
+                on_applied=processor.applied_elsewhere,
+                on_failed=processor.hub.mark_failed,
+                on_resync=processor.resync,
+            )
+            listener.start()
         app.state.db = db
         app.state.settings = settings
         app.state.processor = processor
         deliverer = Deliverer(db, settings) if settings.webhooks_enabled else None
         app.state.deliverer = deliverer
+        app.state.log_writer = writer
         app.state.kernels_warm = threading.Event()
         if settings.bootstrap_admin_key:
             with db.write() as s:
@@ -89,6 +115,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             yield
         finally:
             warm.join(timeout=WARM_JOIN_TIMEOUT_S)
+            writer.stop()
+            if listener is not None:
+                listener.stop()
             processor.stop()
             if deliverer is not None:
                 deliverer.stop()

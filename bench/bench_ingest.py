@@ -112,8 +112,22 @@ class Server:
     log_path: Path
 
 
+def fleethealth_command(source: Path | None) -> list[str]:
+    """The ``fleethealth`` command, of this checkout or of another source tree (``source``:
+    its ``app`` package is imported first, e.g. ``git worktree add /tmp/base main``)."""
+    if source is None:
+        return [fleethealth_exe()]
+    return [sys.executable, "-m", "app.cli"]
+
+
 @contextmanager
-def running_server(database_url: str, workdir: Path, ready_timeout_s: float) -> Iterator[Server]:
+def running_server(
+    database_url: str,
+    workdir: Path,
+    ready_timeout_s: float,
+    source: Path | None = None,
+    extra_env: dict[str, str] | None = None,
+) -> Iterator[Server]:
     """Migrate the database, start ``fleethealth serve`` and stop it (and only it) at the end."""
     api_key = secrets.token_urlsafe(24)
     env = dict(os.environ)
@@ -121,11 +135,14 @@ def running_server(database_url: str, workdir: Path, ready_timeout_s: float) -> 
         {
             "FLEETHEALTH_DATABASE_URL": database_url,
             "FLEETHEALTH_BOOTSTRAP_ADMIN_KEY": api_key,
+            **(extra_env or {}),
         }
     )
-    exe = fleethealth_exe()
+    if source is not None:
+        env["PYTHONPATH"] = f"{source}{os.pathsep}{source / 'clients' / 'python'}"
+    cmd = fleethealth_command(source)
     migrate = subprocess.run(
-        [exe, "migrate"], env=env, cwd=workdir, capture_output=True, text=True, timeout=300
+        [*cmd, "migrate"], env=env, cwd=workdir, capture_output=True, text=True, timeout=300
     )
     if migrate.returncode != 0:
         raise SystemExit(f"fleethealth migrate failed:\n{migrate.stdout}\n{migrate.stderr}")
@@ -133,7 +150,7 @@ def running_server(database_url: str, workdir: Path, ready_timeout_s: float) -> 
     log_path = workdir / f"server-{port}.log"
     log_file = open(log_path, "wb")  # noqa: SIM115 - closed in finally
     process = subprocess.Popen(
-        [exe, "serve", "--host", "127.0.0.1", "--port", str(port)],
+        [*cmd, "serve", "--host", "127.0.0.1", "--port", str(port), "--log-level", "warning"],
         env=env,
         cwd=workdir,
         stdout=log_file,
@@ -173,6 +190,13 @@ def _stop(process: subprocess.Popen[bytes]) -> None:
     except subprocess.TimeoutExpired:
         process.kill()
         process.wait(timeout=10)
+
+
+def tree_cpu_s(pid: int) -> float:
+    """CPU seconds (user + system) used so far by a process and its threads, from /proc: on a
+    machine shared with other work, CPU per request is steadier than wall-clock rates."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def tree_rss_bytes(pid: int) -> int:
@@ -340,6 +364,95 @@ def bench_many(
     return Row(backend, f"{streams} streams", fmt, streams, samples, ack_s, applied_s)
 
 
+# ------------------------------------------------------------------------------------------------
+# Message rate: one sample per POST, plain writes
+# ------------------------------------------------------------------------------------------------
+
+
+def _one_sample(k: int) -> dict[str, object]:
+    return {"batch_id": f"m{k}", "t": [1.7e9 + k * 0.01], "channels": {"current": [0.3], "voltage": [-8.0]}}
+
+
+def _lat_figures(lat: list[float], elapsed_s: float) -> dict[str, float]:
+    arr = np.asarray(lat)
+    return {
+        "requests": float(arr.size),
+        "per_s": arr.size / elapsed_s,
+        "median_ms": float(np.median(arr) * 1e3),
+        "p99_ms": float(np.percentile(arr, 99) * 1e3),
+    }
+
+
+def bench_post1_sequential(server: Server, tail: str, n: int, timeout_s: float) -> dict[str, float]:
+    """One client, one sample per POST, one request after the other (latency)."""
+    import httpx
+
+    headers = {"Authorization": f"Bearer {server.api_key}"}
+    with httpx.Client(base_url=server.url, headers=headers, timeout=60.0) as c:
+        c.post(f"/v1/aircraft/{tail}/actuators", json={"actuator_id": "seq", "kind": "ema_voltage"}).raise_for_status()
+        path = f"/v1/aircraft/{tail}/actuators/seq/telemetry"
+        lat: list[float] = []
+        start = time.perf_counter()
+        for k in range(n):
+            t0 = time.perf_counter()
+            r = c.post(path, json=_one_sample(k))
+            lat.append(time.perf_counter() - t0)
+            if r.status_code != 202:
+                raise SystemExit(f"POST answered {r.status_code}: {r.text}")
+        figures = _lat_figures(lat, time.perf_counter() - start)
+    with FleetHealthClient(server.url, server.api_key) as client:
+        client.wait_applied(tail, "seq", n, timeout_s=timeout_s, poll_s=0.01)
+        figures["applied_s"] = time.perf_counter() - start
+    return figures
+
+
+def bench_post1_concurrent(
+    server: Server, tail: str, clients: int, per_client: int, timeout_s: float
+) -> dict[str, float]:
+    """``clients`` concurrent clients, each its own stream, one sample per POST."""
+    import httpx
+
+    async def run() -> tuple[list[float], float]:
+        headers = {"Authorization": f"Bearer {server.api_key}"}
+        limits = httpx.Limits(max_connections=clients, max_keepalive_connections=clients)
+        async with httpx.AsyncClient(base_url=server.url, headers=headers, timeout=120.0, limits=limits) as c:
+            for i in range(clients):
+                r = await c.post(f"/v1/aircraft/{tail}/actuators", json={"actuator_id": f"c{i:03d}", "kind": "ema_voltage"})
+                r.raise_for_status()
+            lat: list[float] = []
+
+            async def one(i: int) -> None:
+                path = f"/v1/aircraft/{tail}/actuators/c{i:03d}/telemetry"
+                for k in range(per_client):
+                    t0 = time.perf_counter()
+                    r = await c.post(path, json=_one_sample(k))
+                    lat.append(time.perf_counter() - t0)
+                    if r.status_code != 202:
+                        raise SystemExit(f"POST answered {r.status_code}: {r.text}")
+
+            start = time.perf_counter()
+            await asyncio.gather(*(one(i) for i in range(clients)))
+            return lat, time.perf_counter() - start
+
+    lat, elapsed = asyncio.run(run())
+    return _lat_figures(lat, elapsed)
+
+
+def bench_plain_write(server: Server, tail_prefix: str, n: int) -> dict[str, float]:
+    """POST /v1/aircraft one after the other: a write with no telemetry log behind it."""
+    import httpx
+
+    headers = {"Authorization": f"Bearer {server.api_key}"}
+    with httpx.Client(base_url=server.url, headers=headers, timeout=60.0) as c:
+        lat: list[float] = []
+        start = time.perf_counter()
+        for k in range(n):
+            t0 = time.perf_counter()
+            c.post("/v1/aircraft", json={"tail": f"{tail_prefix}{k:05d}"}).raise_for_status()
+            lat.append(time.perf_counter() - t0)
+        return _lat_figures(lat, time.perf_counter() - start)
+
+
 async def _register_idle(
     server: Server, tail: str, n: int, batch_samples: int, concurrency: int, timeout_s: float
 ) -> None:
@@ -392,11 +505,14 @@ def bench_memory(
 # ------------------------------------------------------------------------------------------------
 
 
-def run_backend(backend: str, database_url: str, workdir: Path, args: argparse.Namespace) -> dict:
+def run_backend(
+    backend: str, database_url: str, workdir: Path, args: argparse.Namespace, source: Path | None = None
+) -> dict:
     rows: list[Row] = []
     memory: dict[str, float] = {}
+    rate: dict[str, dict[str, float]] = {}
     run_id = secrets.token_hex(3).upper()
-    with running_server(database_url, workdir, args.ready_timeout_s) as server:
+    with running_server(database_url, workdir, args.ready_timeout_s, source=source) as server:
         print(f"[{backend}] server {server.url} pid {server.process.pid} ready", flush=True)
         with FleetHealthClient(server.url, server.api_key, timeout=120.0) as client:
             # Warm-up: one stream through the whole path, so that memory figures exclude imports.
@@ -430,9 +546,32 @@ def run_backend(backend: str, database_url: str, workdir: Path, args: argparse.N
                     flush=True,
                 )
 
+            if args.post1 > 0:
+                tail = f"BP-{run_id}"
+                client.create_aircraft(tail)
+                pid = server.process.pid
+                cpu0 = tree_cpu_s(pid)
+                rate["post1_sequential"] = bench_post1_sequential(server, tail, args.post1, args.timeout_s)
+                cpu1 = tree_cpu_s(pid)
+                rate["post1_concurrent"] = bench_post1_concurrent(
+                    server, tail, args.post1_clients, args.post1_per_client, args.timeout_s
+                )
+                cpu2 = tree_cpu_s(pid)
+                rate["plain_write"] = bench_plain_write(server, f"W{run_id}-", max(50, args.post1 // 4))
+                cpu3 = tree_cpu_s(pid)
+                # Server CPU per request, the apply of each sample included (sequential case:
+                # measured until the last one is applied).
+                for name, used in (("post1_sequential", cpu1 - cpu0), ("post1_concurrent", cpu2 - cpu1),
+                                   ("plain_write", cpu3 - cpu2)):
+                    rate[name]["server_cpu_ms"] = 1e3 * used / rate[name]["requests"]
+                for name, fig in rate.items():
+                    print(f"[{backend}] {name}: {fig['per_s']:,.0f} requests/s, median "
+                          f"{fig['median_ms']:.2f} ms, p99 {fig['p99_ms']:.2f} ms, server CPU "
+                          f"{fig['server_cpu_ms']:.2f} ms/request", flush=True)
+
             tail = f"BS-{run_id}"
             client.create_aircraft(tail)
-            for fmt in args.formats:
+            for fmt in args.formats if args.batches > 0 else ():
                 row = bench_single(
                     client, backend, tail, fmt, args.batches, args.batch_samples, args.timeout_s
                 )
@@ -441,7 +580,7 @@ def run_backend(backend: str, database_url: str, workdir: Path, args: argparse.N
                     f"[{backend}] {row.case} {fmt}: {row.samples_per_s:,.0f} samples/s", flush=True
                 )
 
-        if args.streams > 0:
+        if args.streams > 0 and args.batches > 0:
             tail = f"BM-{run_id}"
             with FleetHealthClient(server.url, server.api_key) as client:
                 client.create_aircraft(tail)
@@ -461,41 +600,59 @@ def run_backend(backend: str, database_url: str, workdir: Path, args: argparse.N
                 print(
                     f"[{backend}] {row.case} {fmt}: {row.samples_per_s:,.0f} samples/s", flush=True
                 )
-    return {"rows": rows, "memory": memory}
+    return {"rows": rows, "memory": memory, "rate": rate}
 
 
 def print_table(results: dict[str, dict]) -> None:
+    """Each figure per run label (``sqlite``, or ``sqlite base`` / ``sqlite new`` side by side)."""
+    labels = list(results)
     print()
-    print("End-to-end ingest: POST -> telemetry log -> FAKF applied -> results committed")
-    print(
-        f"{'backend':<8} {'case':<12} {'format':<6} {'samples':>10} {'ack s':>8} "
-        f"{'applied s':>10} {'samples/s':>12} {'goal':>11} {'client encode/s':>16}"
-    )
-    for result in results.values():
+    print("Message rate (one sample per POST; a plain write = POST /v1/aircraft)")
+    print(f"{'case':<44}" + "".join(f"{lab:>22}" for lab in labels) + f"{'goal':>22}")
+    cases = [
+        ("post1_sequential", "per_s", "1 client, sequential: requests/s", None),
+        ("post1_sequential", "median_ms", "1 client, sequential: median ms", "<= 2 ms"),
+        ("post1_sequential", "p99_ms", "1 client, sequential: p99 ms", None),
+        ("post1_sequential", "server_cpu_ms", "1 client: server CPU ms/request", None),
+        ("post1_concurrent", "per_s", "32 clients: requests/s", ">= 3,000/s"),
+        ("post1_concurrent", "median_ms", "32 clients: median ms", None),
+        ("post1_concurrent", "server_cpu_ms", "32 clients: server CPU ms/request", None),
+        ("plain_write", "median_ms", "plain write, sequential: median ms", None),
+        ("plain_write", "server_cpu_ms", "plain write: server CPU ms/request", None),
+    ]
+    for key, field, text, goal in cases:
+        vals = [results[lab].get("rate", {}).get(key, {}).get(field) for lab in labels]
+        if all(v is None for v in vals):
+            continue
+        cells = "".join(f"{'-' if v is None else f'{v:,.2f}' if field.endswith('ms') else f'{v:,.0f}':>22}"
+                        for v in vals)
+        print(f"{text:<44}{cells}{goal or '-':>22}")
+    print()
+    print("End-to-end ingest, samples/s: POST -> telemetry log -> FAKF applied -> results committed")
+    keyed: dict[tuple[str, str], dict[str, Row]] = {}
+    for lab, result in results.items():
         for row in result["rows"]:
-            goal = GOALS_SAMPLES_S.get(row.fmt)
-            goal_text = f"{goal:,}" if goal else "-"
-            encode_rate = row.samples / row.encode_s if row.encode_s > 0 else float("nan")
-            encode_text = "-" if encode_rate != encode_rate else f"{encode_rate:,.0f}"
-            print(
-                f"{row.backend:<8} {row.case:<12} {row.fmt:<6} {row.samples:>10,} "
-                f"{row.ack_s:>8.2f} {row.applied_s:>10.2f} {row.samples_per_s:>12,.0f} "
-                f"{goal_text:>11} {encode_text:>16}"
-            )
+            keyed.setdefault((row.case, row.fmt), {})[lab] = row
+    print(f"{'case':<14}{'format':<8}" + "".join(f"{lab:>22}" for lab in labels) + f"{'goal':>14}")
+    for (case, fmt), by_label in keyed.items():
+        goal = GOALS_SAMPLES_S.get(fmt)
+        cells = "".join(
+            f"{by_label[lab].samples_per_s:>22,.0f}" if lab in by_label else f"{'-':>22}" for lab in labels
+        )
+        print(f"{case:<14}{fmt:<8}{cells}{(f'{goal:,}' if goal else '-'):>14}")
     print()
-    for backend, result in results.items():
+    for lab, result in results.items():
         memory = result["memory"]
         if memory:
             print(
-                f"{backend}: server memory per registered stream (RSS delta / "
+                f"{lab}: server memory per registered stream (RSS delta / "
                 f"{memory['streams']} streams): {memory['bytes_per_stream'] / 1024:.2f} KiB "
-                f"(goal < {GOAL_BYTES_PER_IDLE_STREAM / 1024:.0f} KiB per idle stream)"
+                f"(goal <= {GOAL_BYTES_PER_IDLE_STREAM / 1024:.0f} KiB per idle stream)"
             )
     print(f"For scale: NASA prog_server handles about {PROG_SERVER_SAMPLES_S} samples/s.")
     print(
-        "Samples are time stamps carrying 2 channels; 'ack s' = all batches acknowledged "
-        "(durable in the log), 'applied s' = FAKF applied and committed; 'client encode/s' = "
-        "the client's encoding alone (excluded from the timings)."
+        "Samples are time stamps carrying 2 channels. The client runs on the same 2 cores as the "
+        "server; 'base' is the --baseline source tree, 'new' this checkout, both running at the same time."
     )
 
 
@@ -515,18 +672,43 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--ready-timeout-s", type=float, default=120.0)
     parser.add_argument("--quick", action="store_true", help="small sizes, for a smoke run")
     parser.add_argument("--json-out", type=Path, default=None, help="also write figures here")
+    parser.add_argument("--post1", type=int, default=1000, help="one-sample POSTs, sequential client")
+    parser.add_argument("--post1-clients", type=int, default=32)
+    parser.add_argument("--post1-per-client", type=int, default=100)
+    parser.add_argument(
+        "--baseline", type=Path, default=None,
+        help="also run the same cases against this source tree (e.g. git worktree add /tmp/base main), side by side",
+    )
     args = parser.parse_args(argv)
     if args.quick:
         args.batches, args.streams, args.batches_per_stream, args.idle_streams = 3, 10, 1, 50
+        args.post1, args.post1_per_client = 200, 20
 
     results: dict[str, dict] = {}
     with tempfile.TemporaryDirectory(prefix="fleethealth-bench-") as tmp:
         workdir = Path(tmp)
-        if not args.no_sqlite:
-            url = f"sqlite:///{workdir / 'bench.db'}"
-            results["sqlite"] = run_backend("sqlite", url, workdir, args)
-        if args.pg:
-            results["postgres"] = run_backend("postgres", args.pg, workdir, args)
+        runs: list[tuple[str, Path | None]] = [("", None)]
+        if args.baseline is not None:
+            runs = [(" base", args.baseline.resolve()), (" new", None)]
+
+        def backend_runs(suffix: str, source: Path | None) -> None:
+            if not args.no_sqlite:
+                url = f"sqlite:///{workdir / f'bench{suffix.strip()}.db'}"
+                results[f"sqlite{suffix}"] = run_backend(f"sqlite{suffix}", url, workdir, args, source)
+            if args.pg:
+                results[f"postgres{suffix}"] = run_backend(f"postgres{suffix}", args.pg, workdir, args, source)
+
+        # Base and new at the same time, so that whatever else loads the machine weighs on both
+        # alike (one after the other, a change of load would read as a change of speed).
+        import threading
+
+        threads = [threading.Thread(target=backend_runs, args=run) for run in runs]
+        for th in threads:
+            th.start()
+        for th in threads:
+            th.join()
+        order = [f"{b}{suffix}" for b in ("sqlite", "postgres") for suffix, _ in runs]
+        results = {k: results[k] for k in order if k in results}
     print_table(results)
     if args.json_out:
         args.json_out.parent.mkdir(parents=True, exist_ok=True)
@@ -534,6 +716,7 @@ def main(argv: list[str] | None = None) -> int:
             backend: {
                 "rows": [asdict(row) | {"samples_per_s": row.samples_per_s} for row in r["rows"]],
                 "memory": r["memory"],
+                "rate": r.get("rate", {}),
             }
             for backend, r in results.items()
         }

@@ -14,6 +14,7 @@ Usage::
 
     .venv/bin/python bench/bench_ws.py            # SQLite in a temporary folder
     .venv/bin/python bench/bench_ws.py --quick
+    git worktree add /tmp/base main && .venv/bin/python bench/bench_ws.py --baseline /tmp/base
 
 Figures are printed; nothing is asserted.
 """
@@ -33,7 +34,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from bench_ingest import make_stream, running_server  # noqa: E402
+from bench_ingest import make_stream, running_server, tree_cpu_s  # noqa: E402
 from fleethealth_client import FleetHealthClient, FrameStreamer, frames_of  # noqa: E402
 
 FAKF = {"fakf": {"identification_samples": 1000, "health_window_samples": 1000}}
@@ -79,42 +80,76 @@ def latency(url: str, key: str, tail: str, frames: list) -> np.ndarray:  # type:
     return np.asarray(asyncio.run(run()))
 
 
+def run_all(args: argparse.Namespace, source: Path | None) -> dict[str, float]:
+    """Every case against one server (this checkout, or the ``source`` tree)."""
+    n_frames = 100 if args.quick else 400
+    out: dict[str, float] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        url_db = f"sqlite:///{Path(tmp) / 'ws.db'}"
+        with running_server(url_db, Path(tmp), args.ready_timeout_s, source=source) as server:
+            url, key, pid = server.url, server.api_key, server.process.pid
+            for size in (10, 1000):
+                for n_streams in (1, args.streams):
+                    if size == 1000 and n_streams > 1:
+                        continue
+                    tail = f"T{size}x{n_streams}"
+                    _setup(url, key, tail, n_streams)
+                    t, chans = make_stream(size * n_frames, seed=size, t0=0.0)
+                    frames = frames_of(t, chans, size)
+                    if n_streams > 1:
+                        frames = frames[: args.frames_per_stream]
+                    cpu0 = tree_cpu_s(pid)
+                    dt = throughput(url, key, tail, n_streams, frames, binary=True)
+                    nf = n_streams * len(frames)
+                    out[f"{size}x{n_streams} frames/s"] = nf / dt
+                    out[f"{size}x{n_streams} server CPU ms/frame"] = 1e3 * (tree_cpu_s(pid) - cpu0) / nf
+                    print(f"  [{'base' if source else 'new'}] {size}-sample frames, {n_streams} connections: "
+                          f"{nf / dt:,.0f} frames/s", flush=True)
+            tail = "L10"
+            _setup(url, key, tail, 1)
+            t, chans = make_stream(10 * 200, seed=7, t0=0.0)
+            lat = latency(url, key, tail, frames_of(t, chans, 10)[:200])[20:]  # after warm-up
+            out["10-sample frame to result: median ms"] = float(np.median(lat) * 1e3)
+            out["10-sample frame to result: p99 ms"] = float(np.percentile(lat, 99) * 1e3)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--streams", type=int, default=50)
+    ap.add_argument("--streams", type=int, default=200, help="connections of the many-connection case")
+    ap.add_argument("--frames-per-stream", type=int, default=20)
+    ap.add_argument("--ready-timeout-s", type=float, default=600.0)
+    ap.add_argument(
+        "--baseline", type=Path, default=None,
+        help="also run against this source tree (e.g. git worktree add /tmp/base main), side by side",
+    )
     args = ap.parse_args(argv)
-    n_frames = 100 if args.quick else 400
-    sizes = (10, 100, 1000)
-    with tempfile.TemporaryDirectory() as tmp:
-        url_db = f"sqlite:///{Path(tmp) / 'ws.db'}"
-        with running_server(url_db, Path(tmp), 180.0) as server:
-            url, key = server.url, server.api_key
-            print(f"WebSocket streaming, SQLite, FAKF attached; {n_frames} frames per connection\n")
-            print(f"{'frame':>6} {'format':>6} {'conns':>5} {'frames/s':>10} {'samples/s':>11}")
-            for size in sizes:
-                for binary in (False, True):
-                    fmt = "arrow" if binary else "json"
-                    for n_streams in (1, args.streams):
-                        tail = f"T{size}{fmt}{n_streams}"
-                        _setup(url, key, tail, n_streams)
-                        t, chans = make_stream(size * n_frames, seed=size, t0=0.0)
-                        frames = frames_of(t, chans, size)
-                        if n_streams > 1:
-                            frames = frames[: max(10, n_frames // 10)]
-                        dt = throughput(url, key, tail, n_streams, frames, binary)
-                        nf = n_streams * len(frames)
-                        print(f"{size:>6} {fmt:>6} {n_streams:>5} {nf / dt:>10.0f} {nf * size / dt:>11.0f}")
-            print("\nLatency, frame sent -> result received, one frame at a time (Arrow frames):")
-            for size in sizes:
-                tail = f"L{size}"
-                _setup(url, key, tail, 1)
-                t, chans = make_stream(size * 200, seed=7, t0=0.0)
-                lat = latency(url, key, tail, frames_of(t, chans, size)[:200])[20:]  # after warm-up
-                print(
-                    f"  {size:>5} samples/frame: median {np.median(lat) * 1e3:.2f} ms, "
-                    f"p99 {np.percentile(lat, 99) * 1e3:.2f} ms (n={lat.size})"
-                )
+    runs: dict[str, dict[str, float]] = {}
+    if args.baseline is None:
+        runs["new"] = run_all(args, None)
+    else:
+        # Both at once, so that they share whatever else loads the machine alike (run one after
+        # the other, a change of load between the runs shows as a change of speed).
+        import threading
+
+        def one(label: str, source: Path | None) -> None:
+            runs[label] = run_all(args, source)
+
+        threads = [threading.Thread(target=one, args=("base", args.baseline.resolve())),
+                   threading.Thread(target=one, args=("new", None))]
+        for th in threads:
+            th.start()
+        for th in threads:
+            th.join()
+        runs = {"base": runs["base"], "new": runs["new"]}
+    print("\nWebSocket streaming, SQLite, FAKF attached, Arrow frames (frame -> logged -> applied -> result)")
+    labels = list(runs)
+    print(f"{'case':<44}" + "".join(f"{lab:>14}" for lab in labels))
+    for case in runs["new"]:
+        print(f"{case:<44}" + "".join(f"{runs[lab].get(case, float('nan')):>14,.2f}" for lab in labels))
+    print("Goals: >= 10,000 frames/s of 10-sample frames over 1,000 connections; frame to result "
+          "median <= 5 ms at light load. Server CPU = user + system seconds of the server process.")
     return 0
 
 

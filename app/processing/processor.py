@@ -17,20 +17,33 @@ A stream that cannot be applied is never retried forever:
 * any other error is retried ``processor_max_attempts`` times with a doubling back-off, then the
   stream is marked ``failed`` with the last error.
 
+Applies are group-committed: the loop takes every stream woken since its last round and applies
+their pending batches in one transaction (up to ``processor_max_streams_per_txn`` streams and
+``processor_max_samples_per_txn`` samples), each stream inside its own savepoint so that one
+stream's error rolls back only that stream. Subscribers and ``?wait=`` hear of each apply after the
+commit. On PostgreSQL the transaction also carries a ``NOTIFY`` per stream (its applied mark and its
+fleet events), delivered to API processes when it commits (:mod:`app.processing.wakeups`).
+
 A failed stream keeps logging batches (they are durable) but is not applied; ``.../health``, the
 fleet board and ``/metrics`` show it, and a ``?wait`` on one of its batches answers at once.
 """
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import queue
 import threading
 import time
+from collections import OrderedDict
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from typing import Any
 
+import orjson
 from prometheus_client import Counter, Gauge, Histogram
 from sqlalchemy.orm import Session
+from starlette.concurrency import run_in_threadpool
 
 from app.config import Settings
 from app.db import Database
@@ -38,6 +51,7 @@ from app.errors import STORAGE_FAULTS
 from app.fleet import service as fleet
 from app.processing import repository, service
 from app.processing.orchestration import StateUnreadable
+from app.processing.recent import RecentBatches
 from app.processing.service import ApplyResult
 from app.websocket.hub import Hub, StreamMeta, fleet_events
 
@@ -59,10 +73,14 @@ APPLY_SECONDS = Histogram(
     buckets=(0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10),
 )
 
-# A waiter re-reads the applied mark this often: another process may have applied the batch.
-WAIT_POLL_S = 0.5
-# Shortest sleep of the loop between scans (wake-ups arrive through the queue anyway).
-MIN_LOOP_SLEEP_S = 0.05
+# PostgreSQL: a woken stream that another worker held is looked at again after this long.
+BUSY_RECHECK_S = 0.02
+# NOTIFY payloads must stay under 8000 bytes; fleet events are split to fit.
+NOTIFY_MAX_BYTES = 7000
+# Owners (operator, tail, actuator id) of the streams applied lately, for fleet events.
+STREAM_META_CACHE = 4096
+# Applied marks remembered for ?wait= without a read.
+APPLIED_MARKS_CACHE = 4096
 
 
 @dataclass(frozen=True)
@@ -74,25 +92,45 @@ class WaitOutcome:
 
 
 class Processor:
-    """A background thread that applies pending batches, woken by ingest and by a periodic scan."""
+    """A background thread that applies pending batches, woken by ingest (in this process, or by
+    ``NOTIFY`` from others) and by a periodic scan."""
 
-    def __init__(self, db: Database, settings: Settings, hub: Hub | None = None) -> None:
+    def __init__(
+        self,
+        db: Database,
+        settings: Settings,
+        hub: Hub | None = None,
+        *,
+        applied_channel: str | None = None,
+        origin: str = "",
+    ) -> None:
         self.db = db
+        # Batches this process logged, decoded (the log writer fills it when this process applies).
+        self.recent = RecentBatches() if settings.processor_enabled else None
         self.settings = settings
         self.hub = hub or Hub()
-        self._meta: dict[int, StreamMeta] = {}
+        # PostgreSQL: the channel on which applies are announced to other processes.
+        self.applied_channel = applied_channel
+        self.origin = origin
+        self._meta: OrderedDict[int, StreamMeta] = OrderedDict()
         self._queue: queue.SimpleQueue[int | None] = queue.SimpleQueue()
-        self._applied: dict[int, int] = {}
-        self._failed: dict[int, str] = {}
-        self._cond = threading.Condition()
+        # Latest applied marks seen here, so that a ?wait= on a batch already applied needs no
+        # read; bounded (the store has the rest).
+        self._applied: OrderedDict[int, int] = OrderedDict()
+        self._applied_lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._attempts: dict[int, int] = {}
         self._retry_at: dict[int, float] = {}
+        self._recheck_at: dict[int, float] = {}
 
     def start(self) -> None:
         self._thread = threading.Thread(target=self._run, name="fleethealth-processor", daemon=True)
         self._thread.start()
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
 
     def stop(self, timeout: float = 10.0) -> None:
         self._stop.set()
@@ -101,46 +139,74 @@ class Processor:
             self._thread.join(timeout)
 
     def notify(self, actuator_pk: int) -> None:
-        self._queue.put(actuator_pk)
+        if self.settings.processor_enabled:  # else nobody would ever take it off the queue
+            self._queue.put(actuator_pk)
+
+    def notify_many(self, actuator_pks: Sequence[int]) -> None:
+        for pk in actuator_pks:
+            self.notify(pk)
 
     def forget(self, actuator_pk: int) -> None:
         """Drop what this process remembers of a stream (after an admin rewind committed: its
         applied mark went back), and look at it again."""
-        with self._cond:
+        with self._applied_lock:
             self._applied.pop(actuator_pk, None)
-            self._failed.pop(actuator_pk, None)
         self._attempts.pop(actuator_pk, None)
         self._retry_at.pop(actuator_pk, None)
         self.notify(actuator_pk)
 
     # ------------------------------------------------------------------ waiting
-    def wait_applied(self, actuator_pk: int, seq: int, timeout_s: float) -> WaitOutcome:
+    async def wait_applied(self, actuator_pk: int, seq: int, timeout_s: float) -> WaitOutcome:
         """Wait until batch ``seq`` of the stream is applied, the stream is failed, or the
-        time runs out."""
-        deadline = time.monotonic() + timeout_s
+        time runs out: an awaitable resolved when the apply commits (here, or in another
+        process through its notification), never a poll."""
         if self._applied.get(actuator_pk, 0) >= seq:
             return WaitOutcome(True)
-        self._refresh(actuator_pk)
-        with self._cond:
-            while self._applied.get(actuator_pk, 0) < seq and actuator_pk not in self._failed:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    break
-                self._cond.wait(min(left, WAIT_POLL_S))
-                if self._applied.get(actuator_pk, 0) < seq:
-                    self._refresh(actuator_pk)
-        applied = self._applied.get(actuator_pk, 0) >= seq
-        return WaitOutcome(applied, None if applied else self._failed.get(actuator_pk))
+        waiter = self.hub.watch_applied(actuator_pk, seq)
+        try:
+            applied, failure = await run_in_threadpool(self._read_mark, actuator_pk)
+            if applied >= seq:
+                return WaitOutcome(True)
+            if failure is not None:
+                return WaitOutcome(False, failure)
+            try:
+                ok, failure = await asyncio.wait_for(waiter.future, timeout_s)
+            except TimeoutError:
+                return WaitOutcome(False)
+            return WaitOutcome(ok, failure)
+        finally:
+            self.hub.unwatch(actuator_pk, waiter)
 
-    def _refresh(self, actuator_pk: int) -> None:
+    def _remember_applied(self, actuator_pk: int, applied_seq: int) -> None:
+        with self._applied_lock:  # the processor and the notification listener both call this
+            if applied_seq > self._applied.get(actuator_pk, 0):
+                self._applied[actuator_pk] = applied_seq
+            self._applied.move_to_end(actuator_pk)
+            while len(self._applied) > APPLIED_MARKS_CACHE:
+                self._applied.popitem(last=False)
+
+    def _read_mark(self, actuator_pk: int) -> tuple[int, str | None]:
         with self.db.read() as s:
-            applied, failure = repository.applied_mark(s, actuator_pk)
-        if applied > self._applied.get(actuator_pk, 0):
-            self._applied[actuator_pk] = applied
-        if failure is not None:
-            self._failed[actuator_pk] = failure
-        else:
-            self._failed.pop(actuator_pk, None)
+            return repository.applied_mark(s, actuator_pk)
+
+    def applied_elsewhere(self, actuator_pk: int, applied_seq: int, events: list[dict[str, Any]]) -> None:
+        """Another process committed an apply of the stream (its notification): waiters and
+        stream connections hear of it, fleet subscribers get its events."""
+        self._remember_applied(actuator_pk, applied_seq)
+        self.hub.mark_applied(actuator_pk, applied_seq)
+        self.hub.wake_stream(actuator_pk)
+        if events and self.hub.has_fleet_subscribers():
+            self.hub.publish_fleet(events)
+
+    def resync(self) -> None:
+        """Notifications may have been missed (the listener reconnected): every waiter and
+        stream connection looks at the store again."""
+        for pk in self.hub.watched_streams():
+            applied, failure = self._read_mark(pk)
+            self.hub.mark_applied(pk, applied)
+            if failure is not None:
+                self.hub.mark_failed(pk, failure)
+        self.hub.wake_all_streams()
 
     # ------------------------------------------------------------------ applying
     def recover(self) -> int:
@@ -152,46 +218,114 @@ class Processor:
             self.notify(pk)
         return len(pks)
 
-    def _apply_stream(self, actuator_pk: int) -> int:
+    def apply_streams(self, actuator_pks: Sequence[int]) -> int:
+        """Apply every pending batch of the streams, several streams per transaction; the
+        number of batches applied."""
         applied = 0
-        replayed: set[str] = set()
-        while not self._stop.is_set():
-            t0 = time.perf_counter()
-            try:
-                with self.db.write() as s:
-                    res = service.apply_pending(
-                        s,
-                        actuator_pk,
-                        max_samples=self.settings.processor_max_samples_per_txn,
-                        max_batches=self.settings.processor_max_batches_per_txn,
-                        store_outputs=self.settings.store_sample_outputs,
-                        is_sqlite=self.db.is_sqlite,
-                    )
-            except StateUnreadable as exc:
-                if exc.estimator in replayed:
-                    # A state the estimator just wrote cannot be read back: a bug, not an upgrade.
-                    self._attempt_failed(actuator_pk, exc)
-                    return applied
-                if self._replay(actuator_pk, exc):
-                    replayed.add(exc.estimator)
-                    continue
-                return applied
-            except Exception as exc:
-                self._attempt_failed(actuator_pk, exc)
-                return applied
-            self._attempts.pop(actuator_pk, None)
-            self._retry_at.pop(actuator_pk, None)
-            if res is None:
-                return applied
+        replayed: dict[int, set[str]] = {}
+        todo = sorted(set(actuator_pks))
+        cap = self.settings.processor_max_streams_per_txn
+        while todo and not self._stop.is_set():
+            part, todo = todo[:cap], todo[cap:]
+            again, n = self._apply_group(part, replayed)
+            applied += n
+            todo = sorted(set(todo) | set(again))
+        return applied
+
+    def _apply_group(self, pks: list[int], replayed: dict[int, set[str]]) -> tuple[list[int], int]:
+        """One transaction over some streams: the streams to apply again, and the batches
+        applied."""
+        t0 = time.perf_counter()
+        results: list[ApplyResult] = []
+        errors: list[tuple[int, Exception]] = []
+        idle: list[int] = []
+        budget = self.settings.processor_max_samples_per_txn
+        left: list[int] = []
+        try:
+            # Not waiting for the disk: an apply lost in a power cut is redone from the log.
+            with self.db.write(durable=False) as s:
+                for i, pk in enumerate(pks):
+                    # The transaction holds the database's write lock (SQLite: the only one), so
+                    # the log writer's acknowledgements wait behind it: bound its length.
+                    if budget <= 0 or (i and time.perf_counter() - t0 > self.settings.processor_txn_budget_s):
+                        left = pks[i:]
+                        break
+                    try:
+                        with s.begin_nested():
+                            res = service.apply_pending(
+                                s,
+                                pk,
+                                max_samples=min(budget, self.settings.processor_max_samples_per_txn),
+                                max_batches=self.settings.processor_max_batches_per_txn,
+                                store_outputs=self.settings.store_sample_outputs,
+                                is_sqlite=self.db.is_sqlite,
+                                recent=self.recent,
+                            )
+                    except Exception as exc:  # this stream's savepoint is rolled back
+                        errors.append((pk, exc))
+                        continue
+                    if res is None:
+                        idle.append(pk)
+                        continue
+                    budget -= res.samples
+                    results.append(res)
+                if self.applied_channel is not None:
+                    for res in results:
+                        self._announce(s, res)
+        except Exception as commit_exc:  # the commit failed: no stream of the group was applied
+            for pk in pks:
+                self._attempt_failed(pk, commit_exc)
+            return [], 0
+        if results:
             APPLY_SECONDS.observe(time.perf_counter() - t0)
+        again = list(left)
+        for res in results:
+            self._attempts.pop(res.actuator_pk, None)
+            self._retry_at.pop(res.actuator_pk, None)
             BATCHES_APPLIED.inc(res.batches)
             SAMPLES_APPLIED.inc(res.samples)
-            applied += res.batches
-            with self._cond:
-                self._applied[actuator_pk] = res.last_applied_seq
-                self._cond.notify_all()
+            self._remember_applied(res.actuator_pk, res.last_applied_seq)
+            self.hub.mark_applied(res.actuator_pk, res.last_applied_seq)
             self._publish(res)
-        return applied
+            if res.more:
+                again.append(res.actuator_pk)
+        for pk, err in errors:
+            if isinstance(err, StateUnreadable):
+                done = replayed.setdefault(pk, set())
+                if err.estimator in done:
+                    # A state the estimator just wrote cannot be read back: a bug, not an upgrade.
+                    self._attempt_failed(pk, err)
+                elif self._replay(pk, err):
+                    done.add(err.estimator)
+                    again.append(pk)
+            else:
+                self._attempt_failed(pk, err)
+        if idle and not self.db.is_sqlite:
+            self._recheck_busy(idle)
+        return again, sum(r.batches for r in results)
+
+    def _recheck_busy(self, pks: list[int]) -> None:
+        """PostgreSQL: a stream found idle may have been held by another worker (``SKIP
+        LOCKED``) while a batch was logged; look again shortly rather than wait for the scan."""
+        try:
+            with self.db.read() as s:
+                pending = repository.streams_pending(s, pks)
+        except Exception:
+            log.exception("re-checking streams %s failed; the scan will", pks)
+            return
+        due = time.monotonic() + BUSY_RECHECK_S
+        for pk in pending:
+            self._recheck_at[pk] = due
+
+    def _announce(self, session: Session, res: ApplyResult) -> None:
+        """NOTIFY the apply (its mark and fleet events) inside its transaction."""
+        meta = self._stream_meta(res.actuator_pk, session)
+        events = fleet_events(meta, res)
+        for chunk in _chunks(events, NOTIFY_MAX_BYTES):
+            payload = {"o": self.origin, "pk": res.actuator_pk, "seq": res.last_applied_seq, "ev": chunk}
+            repository.notify(
+                session, self.applied_channel or "", orjson.dumps(payload, option=orjson.OPT_SERIALIZE_NUMPY).decode()
+            )
 
     def _replay(self, actuator_pk: int, exc: StateUnreadable) -> bool:
         """Replay the estimator whose state is unreadable; True when done (apply again)."""
@@ -262,20 +396,23 @@ class Processor:
     def _mark_failed(self, session: Session, actuator_pk: int, reason: str, *, cause: str) -> None:
         repository.mark_failed(session, actuator_pk, reason)
         STREAM_FAILURES.labels(cause).inc()
-        with self._cond:
-            self._failed[actuator_pk] = reason
+        if self.applied_channel is not None:
+            payload = {"o": self.origin, "pk": actuator_pk, "failure": reason[: NOTIFY_MAX_BYTES // 2]}
+            repository.notify(session, self.applied_channel, orjson.dumps(payload).decode())
 
     def _after_failed(self, actuator_pk: int) -> None:
         self._attempts.pop(actuator_pk, None)
         self._retry_at.pop(actuator_pk, None)
         with self.db.read() as s:
             STREAMS_FAILED.set(repository.count_failed(s))
-        with self._cond:
-            self._cond.notify_all()
+            _, failure = repository.applied_mark(s, actuator_pk)
+        if failure is not None:
+            self.hub.mark_failed(actuator_pk, failure)
 
     # ------------------------------------------------------------------ publishing
     def _publish(self, res: ApplyResult) -> None:
-        """Tell subscribers what was committed (never blocks; a failure only loses pushes)."""
+        """Tell this process's subscribers what was committed (never blocks; a failure only
+        loses pushes)."""
         try:
             self.hub.publish_applied(res.actuator_pk, res.applied)
             if self.hub.has_fleet_subscribers():
@@ -283,11 +420,19 @@ class Processor:
         except Exception:
             log.exception("publishing results of stream %s failed", res.actuator_pk)
 
-    def _stream_meta(self, actuator_pk: int) -> StreamMeta:
+    def _stream_meta(self, actuator_pk: int, session: Session | None = None) -> StreamMeta:
         meta = self._meta.get(actuator_pk)
-        if meta is None:
+        if meta is not None:
+            self._meta.move_to_end(actuator_pk)
+            return meta
+        if session is not None:
+            meta = StreamMeta(*repository.stream_owner(session, actuator_pk))
+        else:
             with self.db.read() as s:
-                meta = self._meta[actuator_pk] = StreamMeta(*repository.stream_owner(s, actuator_pk))
+                meta = StreamMeta(*repository.stream_owner(s, actuator_pk))
+        self._meta[actuator_pk] = meta
+        while len(self._meta) > STREAM_META_CACHE:
+            self._meta.popitem(last=False)
         return meta
 
     # ------------------------------------------------------------------ loop
@@ -306,14 +451,15 @@ class Processor:
                 except Exception:
                     log.exception("periodic scan failed")
                 next_scan = now + self.settings.processor_scan_interval_s
+            wake_at = min([next_scan, *self._recheck_at.values()])
+            woken: set[int] = set()
             try:
-                pk = self._queue.get(timeout=max(MIN_LOOP_SLEEP_S, next_scan - time.monotonic()))
+                pk = self._queue.get(timeout=max(0.0, wake_at - time.monotonic()))
+                if pk is not None:
+                    woken.add(pk)
             except queue.Empty:
-                continue
-            if pk is None:
-                continue
-            # Coalesce repeated wake-ups for the same stream.
-            woken = {pk}
+                pass
+            # Coalesce: every stream woken meanwhile joins this round.
             while True:
                 try:
                     more = self._queue.get_nowait()
@@ -321,7 +467,26 @@ class Processor:
                     break
                 if more is not None:
                     woken.add(more)
-            for p in sorted(woken):
-                if time.monotonic() < self._retry_at.get(p, 0.0):
-                    continue  # backing off; the periodic scan wakes it again
-                self._apply_stream(p)
+            now = time.monotonic()
+            for p, at in list(self._recheck_at.items()):
+                if at <= now:
+                    woken.add(p)
+                    del self._recheck_at[p]
+            ready = [p for p in woken if now >= self._retry_at.get(p, 0.0)]  # others back off
+            if ready:
+                self.apply_streams(ready)
+
+
+def _chunks(events: list[dict[str, Any]], max_bytes: int) -> Iterator[list[dict[str, Any]]]:
+    """The events in lists whose JSON stays under ``max_bytes`` (at least one list, maybe
+    empty; an event larger than the bound travels alone)."""
+    chunk: list[dict[str, Any]] = []
+    size = 0
+    for ev in events:
+        n = len(orjson.dumps(ev, option=orjson.OPT_SERIALIZE_NUMPY)) + 1
+        if chunk and size + n > max_bytes:
+            yield chunk
+            chunk, size = [], 0
+        chunk.append(ev)
+        size += n
+    yield chunk

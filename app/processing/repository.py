@@ -7,7 +7,7 @@ from collections.abc import Iterator, Sequence
 from datetime import UTC, datetime
 from typing import Any
 
-from sqlalchemy import delete, func, insert, select, update
+from sqlalchemy import delete, func, insert, select, text, update
 from sqlalchemy.orm import Session
 
 from app.models import (
@@ -39,24 +39,59 @@ def claim(session: Session, actuator_pk: int, *, is_sqlite: bool) -> Stream | No
 
 def pending_batches(
     session: Session, stream: Stream, *, max_samples: int, max_batches: int
-) -> list[TelemetryBatch]:
+) -> tuple[list[TelemetryBatch], bool]:
     """The next logged batches after the applied mark, without a gap (a seq not committed yet
-    ends the run), up to ``max_samples`` samples (at least one batch) and ``max_batches``."""
+    ends the run), up to ``max_samples`` samples (at least one batch) and ``max_batches``; and
+    whether more contiguous batches follow them (a limit stopped the run)."""
     pending: list[TelemetryBatch] = []
     total = 0
     for row in session.scalars(
         select(TelemetryBatch)
         .where(TelemetryBatch.actuator_pk == stream.actuator_pk, TelemetryBatch.seq > stream.last_applied_seq)
         .order_by(TelemetryBatch.seq)
-        .limit(max_batches)
+        .limit(max_batches + 1)
     ):
         if row.seq != stream.last_applied_seq + len(pending) + 1:
             break
-        if pending and total + row.n_samples > max_samples:
-            break
+        if len(pending) == max_batches or (pending and total + row.n_samples > max_samples):
+            return pending, True
         pending.append(row)
         total += row.n_samples
-    return pending
+    return pending, False
+
+
+def streams_pending(session: Session, actuator_pks: Sequence[int]) -> list[int]:
+    """Those of the streams with logged batches not applied yet (and not failed)."""
+    if not actuator_pks:
+        return []
+    return list(
+        session.scalars(
+            select(Actuator.id)
+            .join(Stream, Stream.actuator_pk == Actuator.id)
+            .where(
+                Actuator.id.in_(actuator_pks),
+                Actuator.last_logged_seq > Stream.last_applied_seq,
+                Stream.failure.is_(None),
+            )
+        )
+    )
+
+
+def notify(session: Session, channel: str, payload: str) -> None:
+    """PostgreSQL ``NOTIFY``, delivered when (and only if) this transaction commits."""
+    session.execute(text("SELECT pg_notify(:channel, :payload)"), {"channel": channel, "payload": payload})
+
+
+def notification_scope(session: Session) -> str:
+    """The database and schema this session works in (notification channels are per database,
+    not per schema: two schemas on one server must not hear each other)."""
+    return str(session.execute(text("SELECT current_database() || '.' || current_schema()")).scalar_one())
+
+
+def listen(connection: Any, channels: Sequence[str]) -> None:
+    """``LISTEN`` on a raw psycopg connection in autocommit mode."""
+    for ch in channels:
+        connection.execute(f'LISTEN "{ch}"')
 
 
 def estimators(session: Session, actuator_pk: int) -> list[EstimatorState]:

@@ -43,6 +43,7 @@ from app.processing.orchestration import (
     most_urgent_rul,
     run_estimators,
 )
+from app.processing.recent import RecentBatches
 from estimators.base import Batch, worst_status
 
 # Batches read per query, when applying and when replaying the log.
@@ -61,20 +62,26 @@ class ApplyResult:
     # Status before and after this transaction (fleet subscribers hear about changes).
     status_before: str = "learning"
     status_after: str = "learning"
+    # More batches were pending than one apply takes (apply the stream again).
+    more: bool = False
 
 
-def decode(row: TelemetryBatch) -> LoggedBatch:
-    if row.payload is None:
-        raise LookupError(f"batch seq {row.seq} has no payload in the log")
-    cols = decode_columns(row.payload)
-    t_s = cols.pop(TIME_COLUMN)
+def decode(row: TelemetryBatch, recent: RecentBatches | None = None) -> LoggedBatch:
+    """A logged batch, decoded (taken from ``recent`` when this process just logged it)."""
+    batch = recent.take(row.actuator_pk, row.seq) if recent is not None else None
+    if batch is None:
+        if row.payload is None:
+            raise LookupError(f"batch seq {row.seq} has no payload in the log")
+        cols = decode_columns(row.payload)
+        t_s = cols.pop(TIME_COLUMN)
+        batch = Batch(t_s=t_s, channels=cols, end_of_run=row.end_of_run)
     return LoggedBatch(
         seq=row.seq,
         batch_id=row.batch_id,
         t_first_s=row.t_first_s,
         t_last_s=row.t_last_s,
         n_samples=row.n_samples,
-        batch=Batch(t_s=t_s, channels=cols, end_of_run=row.end_of_run),
+        batch=batch,
     )
 
 
@@ -123,6 +130,7 @@ def apply_pending(
     store_outputs: bool,
     is_sqlite: bool,
     max_batches: int = MAX_BATCHES_PER_QUERY,
+    recent: RecentBatches | None = None,
 ) -> ApplyResult | None:
     """Apply the next pending batches of one stream inside the caller's transaction: claim,
     load, run the estimators (pure), store outputs, states and the applied mark together.
@@ -137,7 +145,7 @@ def apply_pending(
     stream = repository.claim(session, actuator_pk, is_sqlite=is_sqlite)
     if stream is None or stream.failure is not None:
         return None
-    pending = repository.pending_batches(session, stream, max_samples=max_samples, max_batches=max_batches)
+    pending, more = repository.pending_batches(session, stream, max_samples=max_samples, max_batches=max_batches)
     if not pending:
         return None
     est_rows = repository.estimators(session, actuator_pk)
@@ -146,7 +154,8 @@ def apply_pending(
         make_runner(er.estimator, er.config, er.state, er.status, er.reasons, er.diagnosis_t_s, er.diagnosis)
         for er in est_rows
     ]
-    step = run_estimators(actuator_pk, runners, [decode(b) for b in pending], store_outputs=store_outputs)
+    batches = [decode(b, recent) for b in pending]
+    step = run_estimators(actuator_pk, runners, batches, store_outputs=store_outputs)
 
     now = utcnow()
     _label(step.rows, est_rows)
@@ -173,6 +182,7 @@ def apply_pending(
         applied=step.results,
         status_before=status_before,
         status_after=stream.status,
+        more=more,
     )
     events.record_apply(session, result)  # the fleet event log and alarms, in this transaction
     return result

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 
-from sqlalchemy import select
+from sqlalchemy import select, text
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -78,3 +78,19 @@ def first_kept_batch(session: Session, actuator_pk: int, from_seq: int, upto_seq
         .order_by(TelemetryBatch.seq)
         .limit(1)
     )
+
+
+def actuators_for_update(session: Session, actuator_pks: list[int]) -> dict[int, Actuator]:
+    """The actuator rows, locked for this transaction in primary-key order (two writers that
+    lock overlapping sets in the same order cannot deadlock)."""
+    if not actuator_pks:
+        return {}
+    rows = session.scalars(
+        select(Actuator).where(Actuator.id.in_(actuator_pks)).order_by(Actuator.id).with_for_update()
+    )
+    return {a.id: a for a in rows}
+
+
+def notify(session: Session, channel: str, payload: str) -> None:
+    """PostgreSQL ``NOTIFY``, delivered when (and only if) this transaction commits."""
+    session.execute(text("SELECT pg_notify(:channel, :payload)"), {"channel": channel, "payload": payload})

@@ -8,7 +8,6 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Header, Query, Request
 from fastapi.responses import Response, StreamingResponse
 from prometheus_client import Counter
-from starlette.concurrency import run_in_threadpool
 
 from app import series
 from app.deps import (
@@ -127,9 +126,9 @@ async def post_telemetry(
         params = TimeParams(
             batch_id=batch_id or idempotency_key, t0=t0, sample_rate_hz=sample_rate_hz, end_of_run=end_of_run
         )
-        ack = await run_in_threadpool(
-            service.ingest_body, db, p.operator_id, tail, actuator_id, body, mt, params, settings.max_batch_samples,
-            BatchLimits.from_settings(settings),
+        ack = await service.ingest_body(
+            request.app.state.log_writer, db, p.operator_id, tail, actuator_id, body, mt, params,
+            settings.max_batch_samples, BatchLimits.from_settings(settings),
         )
     except DomainError as exc:
         BATCHES_REJECTED.labels(exc.name).inc()
@@ -139,11 +138,8 @@ async def post_telemetry(
     else:
         BATCHES_LOGGED.inc()
         SAMPLES_LOGGED.inc(ack.n_samples)
-        processor.notify(ack.actuator_pk)
     if wait > 0:
-        outcome = await run_in_threadpool(
-            processor.wait_applied, ack.actuator_pk, ack.seq, min(wait, settings.max_wait_s)
-        )
+        outcome = await processor.wait_applied(ack.actuator_pk, ack.seq, min(wait, settings.max_wait_s))
         if outcome.failure is not None:
             raise StreamFailed(
                 f"batch {ack.batch_id!r} is logged as seq {ack.seq} but the stream is no longer "

@@ -1,7 +1,12 @@
-"""In-process publish/subscribe of applied results and fleet events.
+"""In-process publish/subscribe of applied results and fleet events, and the applied marks
+that ``?wait=`` awaits.
 
 The processor thread publishes after each committed apply; WebSocket handlers in the event loop
-subscribe. Publishing never blocks the processor: each subscriber has a bounded queue, filled
+subscribe. When the processor runs in other processes (``fleethealth worker`` on PostgreSQL), the
+wake-up listener (:mod:`app.processing.wakeups`) feeds the same hub from their notifications:
+:meth:`Hub.wake_stream` tells a stream's connections to read their results back from the store,
+:meth:`Hub.publish_fleet` relays the fleet events the worker computed, and
+:meth:`Hub.mark_applied` resolves waiters. Publishing never blocks the processor: each subscriber has a bounded queue, filled
 with ``loop.call_soon_threadsafe``; a subscriber whose queue is full is marked ``overflowed``
 and its connection closes it (a slow consumer is dropped, never waited for).
 
@@ -74,6 +79,19 @@ class Subscription:
                 self.loop.call_soon_threadsafe(self._offer, item)
 
 
+@dataclass(eq=False)
+class Waiter:
+    """One ``?wait=``: resolved with ``(applied, failure)``."""
+
+    seq: int
+    future: asyncio.Future[tuple[bool, str | None]]
+
+
+def _set_once(fut: asyncio.Future[tuple[bool, str | None]], outcome: tuple[bool, str | None]) -> None:
+    if not fut.done():
+        fut.set_result(outcome)
+
+
 class Hub:
     """Routes applied results to the connections streaming into an actuator, and fleet events
     to fleet subscribers."""
@@ -82,6 +100,67 @@ class Hub:
         self._lock = threading.Lock()
         self._streams: dict[int, set[Subscription]] = {}
         self._fleet: set[Subscription] = set()
+        # ?wait=: stream -> waiters (seq, future) resolved when an apply commits or it fails.
+        self._waiters: dict[int, set[Waiter]] = {}
+
+    # ------------------------------------------------------------------ applied marks
+    def watch_applied(self, actuator_pk: int, seq: int) -> Waiter:
+        """A waiter for batch ``seq`` of the stream, resolved by :meth:`mark_applied` or
+        :meth:`mark_failed` (register it before reading the mark from the store: no commit is
+        missed in between)."""
+        w = Waiter(seq, asyncio.get_running_loop().create_future())
+        with self._lock:
+            self._waiters.setdefault(actuator_pk, set()).add(w)
+        return w
+
+    def unwatch(self, actuator_pk: int, waiter: Waiter) -> None:
+        with self._lock:
+            ws = self._waiters.get(actuator_pk)
+            if ws is not None:
+                ws.discard(waiter)
+                if not ws:
+                    del self._waiters[actuator_pk]
+
+    def mark_applied(self, actuator_pk: int, applied_seq: int) -> None:
+        """Batches up to ``applied_seq`` of the stream are committed as applied (any thread)."""
+        self._resolve(actuator_pk, lambda w: (True, None) if w.seq <= applied_seq else None)
+
+    def mark_failed(self, actuator_pk: int, reason: str) -> None:
+        """The stream is failed: its waiters hear it at once (any thread)."""
+        self._resolve(actuator_pk, lambda _w: (False, reason))
+
+    def _resolve(self, actuator_pk: int, outcome: Callable[[Waiter], tuple[bool, str | None] | None]) -> None:
+        with self._lock:
+            ws = self._waiters.get(actuator_pk)
+            if not ws:
+                return
+            done = [(w, o) for w in ws if (o := outcome(w)) is not None]
+            for w, _ in done:
+                ws.discard(w)
+            if not ws:
+                del self._waiters[actuator_pk]
+        for w, o in done:
+            with contextlib.suppress(RuntimeError):  # the waiter's loop is closed: it is gone
+                w.future.get_loop().call_soon_threadsafe(_set_once, w.future, o)
+
+    def watched_streams(self) -> list[int]:
+        with self._lock:
+            return list(self._waiters)
+
+    def wake_all_streams(self) -> None:
+        with self._lock:
+            pks = list(self._streams)
+        for pk in pks:
+            self.wake_stream(pk)
+
+    def wake_stream(self, actuator_pk: int) -> None:
+        """Batches of the stream were applied elsewhere: its connections read their results
+        back from the store (any thread)."""
+        with self._lock:
+            subs = list(self._streams.get(actuator_pk, ()))
+        for sub in subs:
+            with contextlib.suppress(RuntimeError):
+                sub.loop.call_soon_threadsafe(sub.wakeup.set)
 
     # ------------------------------------------------------------------ subscriptions
     def subscribe_stream(self, actuator_pk: int, maxsize: int) -> Subscription:

@@ -350,8 +350,8 @@ class _StreamConn:
     async def _take_frame(self, data: str | bytes) -> bool:
         """Log one frame and acknowledge it; False when it was refused (connection closed)."""
         try:
-            client_seq, ack = await run_in_threadpool(
-                telemetry.ingest_frame, self.db, self.actuator_pk, self.channels, data,
+            client_seq, ack = await telemetry.ingest_frame(
+                self.ws.app.state.log_writer, self.actuator_pk, self.channels, data,
                 self.settings.max_batch_samples, BatchLimits.from_settings(self.settings),
             )
         except UnsupportedFrame as exc:

@@ -1,0 +1,172 @@
+"""Group commit of the telemetry log: one thread appends whatever is queued in one transaction.
+
+Every append (a REST batch or a WebSocket frame, of any stream) is handed to :class:`LogWriter`
+as an already parsed and checked batch. The writer thread takes the first queued append and
+every other one queued behind it (up to ``max_group``), locks their actuator rows in primary-key
+order (two API processes on one PostgreSQL never deadlock), runs the log's rules
+(:func:`app.telemetry.service.log_batch`) for each in arrival order, and commits them together.
+Each append's future is resolved only after that commit: an acknowledgement still means the batch
+is durable (invariant 1), but one fsync (SQLite) or one commit round trip (PostgreSQL) now covers
+every batch that arrived while the previous group was being written.
+
+An append refused by the rules (a stale or conflicting batch, a deleted actuator) gets its own
+error and writes nothing, so it never spoils the rest of its group. Any other error rolls the group
+back, and each of its appends is then tried alone, so that only the faulty one fails.
+
+After each commit ``on_logged`` is called with the streams that received new batches (the
+in-process processor's wake-up); on PostgreSQL the same wake-up is also sent by ``NOTIFY`` inside
+the transaction, so it reaches worker processes exactly when the batches become visible.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+from prometheus_client import Histogram
+
+from app.db import Database
+from app.errors import DomainError, StaleBatch
+from app.ingest import ParsedBatch
+from app.processing.recent import RecentBatches
+from app.telemetry import repository
+
+if TYPE_CHECKING:
+    from app.telemetry.service import Ack
+
+log = logging.getLogger("fleethealth.log_writer")
+
+GROUP_SIZE = Histogram(
+    "fleethealth_log_group_appends",
+    "Appends committed per telemetry log transaction",
+    buckets=(1, 2, 4, 8, 16, 32, 64, 128, 256, 512),
+)
+
+@dataclass(eq=False)
+class _Append:
+    actuator_pk: int
+    batch: ParsedBatch
+    future: Future[Ack] = field(default_factory=Future)
+
+
+class LogWriter:
+    """The one writer of the telemetry log in this process (start it before submitting)."""
+
+    def __init__(
+        self,
+        db: Database,
+        *,
+        max_group: int = 256,
+        on_logged: Callable[[Sequence[int]], None] | None = None,
+        notify_channel: str | None = None,
+        origin: str = "",
+        recent: RecentBatches | None = None,
+    ) -> None:
+        self.db = db
+        self.max_group = max_group
+        self.on_logged = on_logged
+        # PostgreSQL: NOTIFY channel for the wake-ups of worker processes (None on SQLite).
+        self.notify_channel = notify_channel
+        self.origin = origin
+        # The in-process processor's shortcut: committed batches, already decoded.
+        self.recent = recent
+        self._queue: queue.SimpleQueue[_Append | None] = queue.SimpleQueue()
+        self._thread: threading.Thread | None = None
+        self._stopping = False
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="fleethealth-log-writer", daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """Commit what is queued, then stop."""
+        self._stopping = True
+        self._queue.put(None)
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    def submit(self, actuator_pk: int, batch: ParsedBatch) -> Future[Ack]:
+        """Queue an append; the future resolves to its :class:`~app.telemetry.service.Ack` once
+        committed (or to the error that refused it)."""
+        item = _Append(actuator_pk, batch)
+        if self._thread is None or not self._thread.is_alive():
+            item.future.set_exception(RuntimeError("the telemetry log writer is not running"))
+            return item.future
+        self._queue.put(item)
+        return item.future
+
+    # ------------------------------------------------------------------ the thread
+    def _run(self) -> None:
+        while True:
+            first = self._queue.get()
+            if first is None:
+                if self._stopping and self._queue.empty():
+                    return
+                continue
+            group = [first]
+            while len(group) < self.max_group:
+                try:
+                    nxt = self._queue.get_nowait()
+                except queue.Empty:
+                    break
+                if nxt is None:
+                    self._queue.put(None)  # keep the stop request for after this group
+                    break
+                group.append(nxt)
+            self._write(group)
+
+    def _write(self, group: list[_Append]) -> None:
+        GROUP_SIZE.observe(len(group))
+        try:
+            outcomes = self._commit(group)
+        except Exception as exc:
+            if len(group) == 1:
+                group[0].future.set_exception(exc)
+                return
+            log.warning("a group of %d appends failed (%s); committing them one by one", len(group), exc)
+            for item in group:
+                self._write([item])
+            return
+        logged: list[int] = []
+        for item, outcome in zip(group, outcomes, strict=True):
+            if isinstance(outcome, DomainError):
+                item.future.set_exception(outcome)
+            else:
+                if not outcome.replayed:
+                    logged.append(item.actuator_pk)
+                    if self.recent is not None:
+                        b = item.batch
+                        self.recent.put(item.actuator_pk, outcome.seq, b.t_s, b.channels, b.end_of_run)
+                item.future.set_result(outcome)
+        if logged and self.on_logged is not None:
+            try:
+                self.on_logged(sorted(set(logged)))
+            except Exception:  # a lost wake-up is caught up by the processor's scan
+                log.exception("waking the processor failed")
+
+    def _commit(self, group: list[_Append]) -> list[Ack | DomainError]:
+        from app.telemetry.service import log_batch
+
+        outcomes: list[Ack | DomainError] = []
+        with self.db.write() as s:
+            actuators = repository.actuators_for_update(s, sorted({i.actuator_pk for i in group}))
+            for item in group:
+                act = actuators.get(item.actuator_pk)
+                try:
+                    if act is None or act.deleted_at is not None:
+                        # Refused like a stale frame (a WebSocket closes with a policy code and this detail).
+                        raise StaleBatch("the actuator was deleted; its stream takes no more frames")
+                    outcomes.append(log_batch(s, act, item.batch))
+                except DomainError as exc:
+                    outcomes.append(exc)
+            if self.notify_channel is not None:
+                fresh = sorted({i.actuator_pk for i, o in zip(group, outcomes, strict=True)
+                                if not isinstance(o, DomainError) and not o.replayed})
+                if fresh:
+                    repository.notify(s, self.notify_channel, f"{self.origin} " + ",".join(map(str, fresh)))
+        return outcomes

@@ -1,0 +1,193 @@
+"""Group commit of appends and applies, and ``?wait=`` as an awaitable (both backends)."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from concurrent.futures import Future
+
+import numpy as np
+import pytest
+from sqlalchemy import func, select
+
+from app.db import Database
+from app.errors import StaleBatch
+from app.ingest import ParsedBatch
+from app.models import Actuator, HealthWindowRow, Stream, TelemetryBatch
+from app.processing.processor import Processor
+from app.telemetry.service import Ack
+from app.telemetry.writer import LogWriter
+from app.websocket.hub import Hub
+from estimators.registry import ESTIMATORS
+from tests.app.conftest import Api, make_settings
+from tests.conftest import make_series
+
+
+def _batch(batch_id: str, t: np.ndarray, s) -> ParsedBatch:  # type: ignore[no-untyped-def]
+    idx = np.searchsorted(s.t_s, t)
+    return ParsedBatch(batch_id, t, {"current": s.current[idx], "voltage": s.voltage[idx]})
+
+
+def _pks(db: Database) -> dict[str, int]:
+    with db.read() as s:
+        return {a.actuator_id: a.id for a in s.scalars(select(Actuator))}
+
+
+class _Groups:
+    """Counts the writer's transactions: the appends each one committed."""
+
+    def __init__(self, writer: LogWriter) -> None:
+        self.sizes: list[int] = []
+        real = writer._commit
+
+        def counting(group):  # type: ignore[no-untyped-def]
+            out = real(group)
+            self.sizes.append(len(group))
+            return out
+
+        writer._commit = counting  # type: ignore[method-assign]
+
+
+def test_queued_appends_commit_together_and_a_refused_one_spoils_nothing(api_noproc: Api, db_url: str) -> None:
+    for act in ("a", "b"):
+        api_noproc.setup_actuator(act=act)
+    s = make_series(400, seed=5)
+    db = Database(db_url)
+    pks = _pks(db)
+    writer = LogWriter(db)
+    groups = _Groups(writer)
+    writer.start()
+    try:
+        # Hold the writer on a first append (its transaction waits for the lock we hold), so that
+        # the others queue behind it.
+        lock_holder = db.write()
+        session = lock_holder.__enter__()
+        session.get(Actuator, pks["a"], with_for_update=True)
+        if db.is_sqlite:
+            session.connection()  # BEGIN IMMEDIATE: the file's write lock
+        first = writer.submit(pks["a"], _batch("a0", s.t_s[0:100], s))
+        futures: list[Future[Ack]] = [
+            writer.submit(pks["b"], _batch("b0", s.t_s[0:100], s)),
+            writer.submit(pks["a"], _batch("a1", s.t_s[100:200], s)),
+            writer.submit(pks["a"], _batch("stale", s.t_s[50:60], s)),  # before a1 in time: refused
+            writer.submit(pks["b"], _batch("b1", s.t_s[100:200], s)),
+            writer.submit(pks["a"], _batch("a0", s.t_s[0:100], s)),  # a retry: the first answer
+        ]
+        assert not first.done()
+        lock_holder.__exit__(None, None, None)
+        assert first.result(30).seq == 1
+        acks = [f.result(30) if i != 2 else None for i, f in enumerate(futures)]
+        with pytest.raises(StaleBatch):
+            futures[2].result(30)
+    finally:
+        writer.stop()
+    assert [a.seq for a in acks if a is not None] == [1, 2, 2, 1]
+    assert acks[4] is not None and acks[4].replayed
+    # Six appends, at most two transactions: the five queued while the first waited for the
+    # lock went together (with the first, when it was taken off the queue after them).
+    assert sum(groups.sizes) == 6 and len(groups.sizes) <= 2 and groups.sizes[-1] >= 5
+    with db.read() as session:
+        rows = session.execute(select(TelemetryBatch.batch_id, TelemetryBatch.seq).order_by(TelemetryBatch.id)).all()
+        logged = {a.actuator_id: a.last_logged_seq for a in session.scalars(select(Actuator))}
+    db.dispose()
+    assert sorted(tuple(r) for r in rows) == [("a0", 1), ("a1", 2), ("b0", 1), ("b1", 2)]
+    assert logged == {"a": 2, "b": 2}
+
+
+def test_each_ack_waits_for_its_own_commit(api_noproc: Api, db_url: str) -> None:
+    """A future resolves only after its group committed: a second engine sees the batch then."""
+    api_noproc.setup_actuator()
+    s = make_series(1000, seed=6)
+    db = Database(db_url)
+    pk = _pks(db)["ema1"]
+    writer = LogWriter(db)
+    writer.start()
+    other = Database(db_url)
+    seen: list[bool] = []
+    try:
+        futures = [writer.submit(pk, _batch(f"b{k}", s.t_s[100 * k:100 * (k + 1)], s)) for k in range(10)]
+        for f in futures:
+            ack = f.result(30)
+            with other.read() as session:
+                seen.append(session.scalar(
+                    select(func.count()).select_from(TelemetryBatch).where(TelemetryBatch.seq == ack.seq)) == 1)
+    finally:
+        writer.stop()
+        other.dispose()
+        db.dispose()
+    assert seen == [True] * 10
+
+
+def test_many_streams_applied_in_one_transaction_and_a_failing_one_alone_rolls_back(
+    api_noproc: Api, db_url: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    acts = ["s0", "s1", "s2", "bad"]
+    for act in acts:
+        api_noproc.setup_actuator(act=act)
+    for act in acts:
+        # The failing stream's samples come later in time: the step recognises them by that.
+        s = make_series(500, seed=7, t0=100.0 if act == "bad" else 0.0)
+        for k in range(2):
+            sl = slice(250 * k, 250 * (k + 1))
+            r = api_noproc.send_arrow("N1", act, f"{act}-{k}", s.t_s[sl], {"current": s.current[sl],
+                                      "voltage": s.voltage[sl]}, wait=0)
+            assert r.status_code == 202, r.text
+    db = Database(db_url)
+    pks = _pks(db)
+    fakf = ESTIMATORS["fakf"]
+    real_step = fakf.step
+
+    def step(cfg, state, batch):  # type: ignore[no-untyped-def]
+        out = real_step(cfg, state, batch)  # the failure comes after the estimator ran
+        if float(batch.t_s[0]) >= 100.0:
+            raise RuntimeError("simulated failure of one stream")
+        return out
+
+    monkeypatch.setattr(fakf, "step", step)
+    # A generous time budget: the point is that the three streams share one transaction.
+    processor = Processor(db, make_settings(db_url, processor_max_attempts=1, processor_txn_budget_s=60.0))
+    writes: list[int] = []
+    real_write = db.write
+
+    def counting_write(**kw):  # type: ignore[no-untyped-def]
+        writes.append(1)
+        return real_write(**kw)
+
+    monkeypatch.setattr(db, "write", counting_write)
+    applied = processor.apply_streams([pks[a] for a in acts])
+    assert applied == 6
+    with db.read() as session:
+        marks = {pk: (seq, failure) for pk, seq, failure in
+                 session.execute(select(Stream.actuator_pk, Stream.last_applied_seq, Stream.failure))}
+        bad_windows = session.scalar(select(func.count()).select_from(HealthWindowRow)
+                                     .where(HealthWindowRow.actuator_pk == pks["bad"]))
+    db.dispose()
+    for act in ("s0", "s1", "s2"):
+        assert marks[pks[act]] == (2, None)
+    assert marks[pks["bad"]][0] == 0 and "simulated failure" in (marks[pks["bad"]][1] or "")
+    assert bad_windows == 0
+    # One transaction applied the three good streams; one more marked "bad" failed.
+    assert len(writes) == 2
+
+
+def test_wait_is_an_awaitable_resolved_by_the_commit() -> None:
+    hub = Hub()
+
+    async def run() -> tuple[tuple[bool, str | None], tuple[bool, str | None], bool]:
+        w5 = hub.watch_applied(1, 5)
+        w9 = hub.watch_applied(1, 9)
+        other = hub.watch_applied(2, 1)
+        # Resolved from another thread, as the processor or the notification listener does.
+        threading.Thread(target=hub.mark_applied, args=(1, 7)).start()
+        got5 = await asyncio.wait_for(w5.future, 10)
+        assert not w9.future.done()
+        threading.Thread(target=hub.mark_failed, args=(1, "broken")).start()
+        got9 = await asyncio.wait_for(w9.future, 10)
+        hub.unwatch(2, other)
+        return got5, got9, other.future.done()
+
+    got5, got9, other_done = asyncio.run(run())
+    assert got5 == (True, None)
+    assert got9 == (False, "broken")
+    assert not other_done
+    assert hub.watched_streams() == []
