@@ -28,6 +28,7 @@ does not write the document.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import math
 import sys
 import time
@@ -147,9 +148,40 @@ def _gate_margins(
     return {"runs_probability": runs_p, "runs_probability_and_deflection": runs_both, "pmax": pmax}
 
 
-def run_flight(sc: FlightScenario, extra: dict[str, Any] | None = None) -> FlightRecord:
-    """Simulate and score one flight (``extra``: configuration changes)."""
+def _sources_digest() -> str:
+    """Digest of the simulator's source files: a cached flight is reused only if it was
+    simulated by the same code."""
+    h = hashlib.sha256()
+    for mod in ("uav_closed_loop.py", "uav_scenarios.py"):
+        h.update((ROOT / "estimators" / "simulators" / mod).read_bytes())
+    h.update((ROOT / "estimators" / "models" / "small_uav.py").read_bytes())
+    return h.hexdigest()[:16]
+
+
+def simulate(sc: FlightScenario, cache: Path | None) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Simulate one flight, or read it from ``cache`` (a directory of ``.npz`` files keyed by
+    category, seed and the simulator's source digest; the simulation is deterministic)."""
+    path = None
+    if cache is not None:
+        path = cache / f"{sc.category}_{sc.seed}_{_sources_digest()}.npz"
+        if path.exists():
+            with np.load(path) as data:
+                return data["t"], {k[3:]: data[k] for k in data.files if k.startswith("ch_")}
     t, ch, _truth = sc.simulate()
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp.npz")
+        np.savez(tmp, t=t, **{f"ch_{k}": v for k, v in ch.items()})
+        tmp.replace(path)
+    return t, ch
+
+
+def run_flight(
+    sc: FlightScenario, extra: dict[str, Any] | None = None, cache: Path | None = None
+) -> FlightRecord:
+    """Simulate (or read from ``cache``) and score one flight (``extra``: configuration
+    changes)."""
+    t, ch = simulate(sc, cache)
     config = config_for(sc, extra)
     t0 = time.perf_counter()
     _, out = stmmae.step(config, stmmae.initial_state(config), Batch(t_s=t, channels=ch))
@@ -439,7 +471,24 @@ def main() -> int:
     ap.add_argument(
         "--no-ablation", action="store_true", help="skip the pair flights without pair hypotheses"
     )
+    ap.add_argument(
+        "--cache", type=Path, default=None, help="directory of simulated flights to reuse"
+    )
+    ap.add_argument(
+        "--simulate-only",
+        action="store_true",
+        help="fill --cache with the plan's flights, then stop",
+    )
+    ap.add_argument(
+        "--seed-offset",
+        type=int,
+        default=0,
+        help="added to every seed base (another draw of flights; the document names the seeds)",
+    )
     args = ap.parse_args()
+    if args.seed_offset:
+        for key in SEED_BASE:
+            SEED_BASE[key] += args.seed_offset
     if args.quick:
         args.singles, args.pairs, args.fault_free_hours = 6, 6, 0.2
     stmmae.warm_up()
@@ -449,9 +498,13 @@ def main() -> int:
     ] + [random_scenario(SEED_BASE["pair"] + i, "pair") for i in range(args.pairs)]
     n_free = int(math.ceil(args.fault_free_hours * 3600.0 / 600.0 - 1e-9))
     plan += [random_scenario(SEED_BASE["fault_free"] + i, "fault_free") for i in range(n_free)]
+    if args.simulate_only:
+        for sc in plan:
+            simulate(sc, args.cache)
+        return 0
     flights = []
     for i, sc in enumerate(plan):
-        rec = run_flight(sc)
+        rec = run_flight(sc, cache=args.cache)
         flights.append(rec)
         marks = ", ".join(
             f"{r.surface} {r.kind} {'-' if r.delay_s is None else f'{r.delay_s:.2f}'}"
@@ -467,7 +520,7 @@ def main() -> int:
     if not args.no_ablation:
         for sc in plan:
             if sc.category == "pair":
-                rec = run_flight(sc, {"pair_hypotheses": False})
+                rec = run_flight(sc, {"pair_hypotheses": False}, args.cache)
                 ablation.append(rec)
                 print(f"[ablation] pair {sc.seed}: wrong {rec.wrong}", flush=True)
     lines = report(flights, args, time.perf_counter() - t0, ablation)
