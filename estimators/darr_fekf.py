@@ -37,7 +37,7 @@ import itertools
 import json
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Annotated, Any, Literal, NamedTuple
 
 import numpy as np
@@ -2103,6 +2103,17 @@ def _status(
 # ----------------------------------------------------------------------------- step
 
 
+def _close_run(state: DarrFekfState) -> tuple[DarrFekfState, FloatArray]:
+    """The run is closed (``end_of_run``): its partial health window, if any, is scored now
+    (rows ``(0 or 1, WIN_LEN)``); residuals, thresholds, filters and decisions carry on."""
+    if not state.scalars[kern.ST_WIN_COUNT] > 0.0:
+        return state, np.empty((0, kern.WIN_LEN))
+    scalars = state.scalars.copy()
+    rows = np.empty((1, kern.WIN_LEN))
+    kern.close_health_window(scalars, state.t_last_s, rows[0])
+    return replace(state, scalars=_frozen(scalars)), rows
+
+
 def step(
     config: DarrFekfConfig, state: DarrFekfState, batch: Batch
 ) -> tuple[DarrFekfState, StepOutputs]:
@@ -2125,6 +2136,13 @@ def step(
     n = int(t.shape[0])
     if n == 0:
         empty = np.empty(0, dtype=np.float64)
+        if batch.end_of_run:
+            _check_state(config, state)
+            state, rows = _close_run(state)
+            return state, StepOutputs(
+                samples={name: empty for name in names},
+                health=[_health(row, config) for row in rows],
+            )
         return state, StepOutputs(samples={name: empty for name in names})
     if not t[0] > state.t_last_s:
         raise OutOfOrderError(
@@ -2174,6 +2192,9 @@ def step(
         t_last_s=float(t[n - 1]),
         **{name: _frozen(a) for name, a in arrays.items()},
     )
+    if batch.end_of_run:
+        new_state, closed = _close_run(new_state)
+        windows = np.concatenate([windows, closed]) if closed.shape[0] else windows
     detail = diagnosis_detail(config, new_state)
     event_list: list[EstimatorEvent] = []
     for row in events:

@@ -1417,23 +1417,30 @@ def darr_batch(
                     if not ratio <= st[ST_WIN_MAX + ri]:
                         st[ST_WIN_MAX + ri] = ratio
         if st[ST_WIN_COUNT] >= health_n:
-            row = windows[n_wo]
-            row[WIN_T0] = st[ST_WIN_T0]
-            row[WIN_T1] = tk
-            row[WIN_N] = st[ST_WIN_COUNT]
-            row[WIN_FAULT] = st[ST_WIN_FAULT]
-            row[WIN_MASK] = st[ST_WIN_MASK]
-            for ri in range(N_RES):
-                n_l = st[ST_WIN_N + ri]
-                row[WIN_RMS + ri] = math.sqrt(st[ST_WIN_SUM2 + ri] / n_l) if n_l > 0.0 else np.nan
-                row[WIN_PEAK + ri] = st[ST_WIN_MAX + ri]
+            close_health_window(st, tk, windows[n_wo])
             n_wo += 1
-            st[ST_WIN_COUNT] = 0.0
         for c in range(N_CHAN):
             st[ST_PREV_SMOOTH + c] = smooth[c]
         st[ST_T_LAST] = tk
     st[ST_POS] = pos
     return events[:n_ev].copy(), windows[:n_wo].copy(), 0
+
+
+@njit(cache=True, error_model="numpy")
+def close_health_window(st: FloatArray, t_end: float, row: FloatArray) -> None:
+    """Write the open health window's row (``WIN_*``) ending at ``t_end`` and start a new one
+    (the per-sample loop when a window is full; ``darr_fekf.step`` for the partial window of a
+    run closed by ``end_of_run``)."""
+    row[WIN_T0] = st[ST_WIN_T0]
+    row[WIN_T1] = t_end
+    row[WIN_N] = st[ST_WIN_COUNT]
+    row[WIN_FAULT] = st[ST_WIN_FAULT]
+    row[WIN_MASK] = st[ST_WIN_MASK]
+    for ri in range(N_RES):
+        n_l = st[ST_WIN_N + ri]
+        row[WIN_RMS + ri] = math.sqrt(st[ST_WIN_SUM2 + ri] / n_l) if n_l > 0.0 else np.nan
+        row[WIN_PEAK + ri] = st[ST_WIN_MAX + ri]
+    st[ST_WIN_COUNT] = 0.0
 
 
 @njit(cache=True, error_model="numpy")
