@@ -820,14 +820,14 @@ def _decide(
 
 @njit(cache=True, error_model="numpy")
 def _relevant_loglik(
-    bank: BankArrays, dec: FloatArray, ll: FloatArray, rel_in: FloatArray
-) -> float:
-    """Log-likelihoods of the detection evidence, over the hypotheses *relevant* to a new
-    fault: those that hold every active fault. Returns the base log-likelihood (the hypothesis
-    holding exactly the active faults: the no-fault filter when none is active);
-    ``rel_in[g]`` receives the best relevant log-likelihood with surface ``g`` among the faulty
-    ones (-inf when there is none, e.g. a third fault while two are active: the bank has no
-    hypothesis for it)."""
+    bank: BankArrays, dec: FloatArray, ll: FloatArray, rel_in: FloatArray, base: FloatArray
+) -> None:
+    """Log-likelihoods of the detection evidence of each surface ``g``: ``rel_in[g]`` the best
+    filter among those *relevant* to a new fault of ``g`` (holding every active fault and
+    ``g``), ``base[g]`` the filter of exactly the active faults (the no-fault filter when none
+    is active). When no filter holds the active faults and ``g`` (a third fault while two are
+    active: the bank has no triple hypotheses) the evidence falls back to the best filter
+    holding ``g`` against the no-fault filter."""
     nh = ll.shape[0]
     ns = rel_in.shape[0]
     n_slots = bank.slot_surface.shape[1]
@@ -836,7 +836,7 @@ def _relevant_loglik(
         rel_in[g] = -np.inf
         if dec[g, D_ACTIVE] == 1.0:
             n_act += 1
-    base = -np.inf
+    ll_active = -np.inf
     for f in range(nh):
         count = 0
         held = 0
@@ -849,15 +849,19 @@ def _relevant_loglik(
         if held < n_act:
             continue
         if count == n_act:
-            base = ll[f]
-        for g in range(ns):
-            has = False
-            for e in range(n_slots):
-                if bank.slot_surface[f, e] == g:
-                    has = True
-            if has and ll[f] > rel_in[g]:
+            ll_active = ll[f]
+        for e in range(n_slots):
+            g = bank.slot_surface[f, e]
+            if g >= 0 and ll[f] > rel_in[g]:
                 rel_in[g] = ll[f]
-    return base
+    for g in range(ns):
+        base[g] = ll_active
+        if rel_in[g] == -np.inf:
+            base[g] = ll[0]
+            for f in range(nh):
+                for e in range(n_slots):
+                    if bank.slot_surface[f, e] == g and ll[f] > rel_in[g]:
+                        rel_in[g] = ll[f]
 
 
 @njit(cache=True, error_model="numpy")
@@ -1025,6 +1029,7 @@ def _bank_kernel(
     ll_in = np.empty(ns)
     ll_out = np.empty(ns)
     rel_in = np.empty(ns)
+    rel_base = np.empty(ns)
     best_in = np.full(ns, -1, dtype=np.int64)
     probs = st[lay_probs : lay_probs + nh]
     u_last = st[lay_u : lay_u + m]
@@ -1141,7 +1146,7 @@ def _bank_kernel(
                         best_in[g] = f
                 elif ll[f] > ll_out[g]:
                     ll_out[g] = ll[f]
-        ll_base = _relevant_loglik(bank, dec, ll, rel_in)
+        _relevant_loglik(bank, dec, ll, rel_in, rel_base)
         n_active_before = 0
         for h in range(ns):
             if dec[h, D_ACTIVE] == 1.0:
@@ -1154,7 +1159,7 @@ def _bank_kernel(
             dec[h, D_DEFL] = defl
             dec[h, D_PROB] = pm[h]
             cmd = u_last[surface_inputs[h]]
-            llr = rel_in[h] - ll_base if nv > 0 and dec[h, D_ACTIVE] != 1.0 else 0.0
+            llr = rel_in[h] - rel_base[h] if nv > 0 and dec[h, D_ACTIVE] != 1.0 else 0.0
             code = _decide(
                 cfg,
                 dec,

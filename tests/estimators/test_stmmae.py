@@ -816,36 +816,44 @@ def test_end_of_run_closes_the_partial_health_window(flight) -> None:
 
 
 def test_detection_evidence_is_measured_against_the_active_faults() -> None:
-    """The evidence for a new fault of a surface compares the hypotheses that hold every active
-    fault and at most that surface more against the hypothesis of exactly the active faults:
-    with none active, the surface's single filter against the no-fault filter (a pair filter's
-    better fit, which its second free deflection buys on fault-free data, is no evidence); with
-    one active, the pair of it and the surface against the active fault's own filter (the
-    first fault's misfit in the no-fault filter is no evidence for a second one); with two
-    active, the bank has no hypothesis for a third."""
+    """The evidence for a new fault of a surface compares the best filter that holds every
+    active fault and that surface against the filter of exactly the active faults: with none
+    active, the best filter holding the surface against the no-fault filter (as before); with
+    one active, the pair of it and the surface against the active fault's own filter (the first
+    fault's misfit in the no-fault filter is no evidence for a second one, which it was before);
+    with two active, no filter holds a third, and the evidence falls back to the best filter
+    holding the surface against the no-fault filter."""
     config = stmmae.parse_config({})
     arr = config.arrays
     hyps = config.hypotheses
-    ns = len(config.model.surfaces)
+    surfaces = config.model.surfaces
+    ns = len(surfaces)
     rng = np.random.default_rng(4)
     ll = rng.normal(size=len(hyps))
     ll[hyps.index("aileron_left+rudder")] = 50.0  # a pair fits best
     dec = np.zeros((ns, kern.D_LEN))
-    rel_in = np.empty(ns)
-    base = kern._relevant_loglik(arr, dec, ll, rel_in)
-    assert base == ll[0]
-    for h, s in enumerate(config.model.surfaces):
-        assert rel_in[h] == ll[hyps.index(s)]
-    rudder = config.model.surfaces.index("rudder")
+    rel_in, base = np.empty(ns), np.empty(ns)
+
+    def best_holding(s: str) -> float:
+        return max(ll[i] for i, h in enumerate(hyps) if s in h.split("+"))
+
+    kern._relevant_loglik(arr, dec, ll, rel_in, base)
+    assert np.all(base == ll[0])
+    for h, s in enumerate(surfaces):
+        assert rel_in[h] == best_holding(s)
+    rudder = surfaces.index("rudder")
     dec[rudder, kern.D_ACTIVE] = 1.0
-    base = kern._relevant_loglik(arr, dec, ll, rel_in)
-    assert base == ll[hyps.index("rudder")]
-    for h, s in enumerate(config.model.surfaces):
+    kern._relevant_loglik(arr, dec, ll, rel_in, base)
+    assert np.all(base == ll[hyps.index("rudder")])
+    for h, s in enumerate(surfaces):
         if s != "rudder":
-            pair = "+".join(sorted((s, "rudder"), key=config.model.surfaces.index))
+            pair = "+".join(sorted((s, "rudder"), key=surfaces.index))
             assert rel_in[h] == ll[hyps.index(pair)]
-    assert rel_in[config.model.surfaces.index("aileron_left")] == 50.0
-    dec[0, kern.D_ACTIVE] = 1.0
-    base = kern._relevant_loglik(arr, dec, ll, rel_in)
-    assert base == ll[hyps.index(f"{config.model.surfaces[0]}+rudder")]
-    assert all(rel_in[h] == -np.inf for h in range(1, ns) if h != rudder)
+    assert rel_in[surfaces.index("aileron_left")] == 50.0
+    elevator = surfaces.index("elevator_left")
+    dec[elevator, kern.D_ACTIVE] = 1.0
+    kern._relevant_loglik(arr, dec, ll, rel_in, base)
+    for h, s in enumerate(surfaces):
+        if h in (rudder, elevator):
+            continue
+        assert base[h] == ll[0] and rel_in[h] == best_holding(s)
