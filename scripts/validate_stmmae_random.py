@@ -172,7 +172,8 @@ def simulate(sc: FlightScenario, cache: Path | None) -> tuple[np.ndarray, dict[s
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".tmp.npz")
-        np.savez(tmp, t=t, **{f"ch_{k}": v for k, v in ch.items()})
+        arrays: dict[str, Any] = {"t": t, **{f"ch_{k}": v for k, v in ch.items()}}
+        np.savez(tmp, **arrays)
         tmp.replace(path)
     return t, ch
 
