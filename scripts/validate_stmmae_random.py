@@ -22,7 +22,11 @@ held alone).
 
 Run: ``.venv/bin/python scripts/validate_stmmae_random.py`` (defaults: 40 single, 40 pair,
 5 fault-free flight hours; about 25 min on two shared cores). ``--quick`` runs 6/6/0.2 h and
-does not write the document.
+does not write the document. ``--cache DIR`` keeps the simulated flights (``.npz``, keyed by
+category, seed and a digest of the simulator's sources) and reuses them: the estimator costs
+about a third of a run, the simulation the rest; ``--simulate-only`` fills the cache.
+``--seed-offset N`` draws other flights (every seed base + N); ``--config JSON`` runs a changed
+configuration (development; the document then reports that configuration).
 """
 
 from __future__ import annotations
