@@ -665,7 +665,8 @@ def test_state_round_trip_is_exact() -> None:
 
 def test_state_version_and_garbage_are_refused() -> None:
     config = m.parse_config({})
-    blob = m.dump_state(m.initial_state(config)).replace(b'"version":2', b'"version":7')
+    current = f'"version":{m.STATE_VERSION}'.encode()
+    blob = m.dump_state(m.initial_state(config)).replace(current, b'"version":7')
     with pytest.raises(StateVersionError, match="7"):
         m.load_state(blob)
     with pytest.raises(EstimatorError):
@@ -811,7 +812,7 @@ def test_relation_mode_accepts_any_relation() -> None:
 def test_registry_and_warm_up() -> None:
     from estimators.registry import ACTUATOR_KINDS, get_estimator
 
-    assert get_estimator("darr_fekf") is m and m.STATE_VERSION == 2
+    assert get_estimator("darr_fekf") is m and m.STATE_VERSION == 3
     kind = ACTUATOR_KINDS["sha_ema"]
     assert kind.channels == CHANNELS and kind.default_estimators == {"darr_fekf": {}}
     m.warm_up()
