@@ -37,7 +37,7 @@ import itertools
 import json
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Annotated, Any, Literal, NamedTuple
 
 import numpy as np
@@ -63,7 +63,7 @@ from estimators.checks import finite_or_none as _finite_or_none
 from estimators.kernels import darr_kernels as kern
 
 NAME = "darr_fekf"
-STATE_VERSION = 2
+STATE_VERSION = 3
 
 # ----------------------------------------------------------------------------- the model
 CHANNELS: tuple[str, ...] = ("w", "f_c", "v", "f_e", "f_h", "v_p", "p_l", "x_v", "u_a")
@@ -681,6 +681,25 @@ class SensorChecksModel(EstimatorConfigModel):
         description="running over calibrated noise variance above which a sensor is noisy "
         "(also: calibration noise over reference noise above which calibration is refused)",
     )
+    white_noise_ratio: _Ratio = Field(
+        1.7,
+        description="lower level of the same ratio that applies while the extra noise is white "
+        "(see white_noise_correlation); at most noise_ratio",
+    )
+    white_noise_correlation: float = Field(
+        -0.68,
+        ge=-0.75,
+        le=1.0,
+        description="the running lag-1 autocorrelation of the third differences below which "
+        "the noise counts as white (white noise: -0.75; a plant resonance at w: about "
+        "cos(w dt))",
+    )
+
+    @model_validator(mode="after")
+    def _levels(self) -> SensorChecksModel:
+        if self.white_noise_ratio > self.noise_ratio:
+            raise ValueError("white_noise_ratio: must not exceed noise_ratio")
+        return self
 
 
 class IsolationModel(EstimatorConfigModel):
@@ -1119,6 +1138,8 @@ def _compile(config: DarrFekfConfig) -> _Compiled:
     cfg[kern.CFG_NOISE_RATIO] = sens.noise_ratio if sens.enabled else math.inf
     cfg[kern.CFG_SENSOR_MIN_N] = 3.0 * sens.noise_window_s / config.sample_period_s
     cfg[kern.CFG_NOISE_PERSIST] = max(1, round(sens.noise_persist_s / config.sample_period_s))
+    cfg[kern.CFG_WHITE_RATIO] = sens.white_noise_ratio if sens.enabled else math.inf
+    cfg[kern.CFG_WHITE_LEVEL] = sens.white_noise_correlation
     cfg[kern.CFG_FIT_DEC] = config.isolation.fit_decimation
     cfg[kern.CFG_FIT_LAMBDA] = math.exp(
         -config.isolation.fit_decimation * config.sample_period_s / config.isolation.window_s
@@ -1229,6 +1250,8 @@ SCALAR_PARTS: dict[str, tuple[int, int]] = {
     "sensor_unchanged_run": (kern.ST_SENS_RUN, kern.N_CHAN),
     "subsystem_withheld": (kern.ST_SUB_WITHHELD, 7),
     "sensor_noise_over": (kern.ST_SENS_ABOVE, kern.N_CHAN),
+    "sensor_noise_lag1": (kern.ST_SENS_COV1, kern.N_CHAN),
+    "sensor_last_third_difference": (kern.ST_SENS_E_PREV, kern.N_CHAN),
 }
 
 
@@ -1339,6 +1362,10 @@ def initial_state(config: DarrFekfConfig) -> DarrFekfState:
     noise_var = [config.noise_std[c] ** 2 if c in config.noise_std else np.nan for c in CHANNELS]
     sc[kern.ST_NOISE_VAR : kern.ST_NOISE_VAR + kern.N_CHAN] = noise_var
     sc[kern.ST_SENS_VAR : kern.ST_SENS_VAR + kern.N_CHAN] = noise_var
+    sc[kern.ST_SENS_COV1 : kern.ST_SENS_COV1 + kern.N_CHAN] = kern.WHITE_LAG1 * np.asarray(
+        noise_var
+    )
+    sc[kern.ST_SENS_E_PREV : kern.ST_SENS_E_PREV + kern.N_CHAN] = np.nan
     for part in ("expected_residual_sd", "calibration_robust_rms", "calibration_level_ratio"):
         offset, length = SCALAR_PARTS[part]
         sc[offset : offset + length] = np.nan
@@ -1413,7 +1440,7 @@ def _upgrade_v1(doc: dict[str, Any]) -> dict[str, Any]:
     old = _decode(doc["scalars"])
     if old.shape != (kern.ST_LEN_V1,):
         raise EstimatorError("not a darr_fekf state: wrong scalar block (version 1)")
-    sc = np.zeros(kern.ST_LEN)
+    sc = np.zeros(kern.ST_LEN_V2)
     sc[: kern.ST_LEN_V1] = old
     for part in ("expected_residual_sd", "calibration_robust_rms", "calibration_level_ratio"):
         offset, length = SCALAR_PARTS[part]
@@ -1436,7 +1463,23 @@ def _upgrade_v1(doc: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-_UPGRADES = {1: _upgrade_v1}
+def _upgrade_v2(doc: dict[str, Any]) -> dict[str, Any]:
+    """Version 2 -> 3: the white-noise test of the sensor checks appended (per channel the
+    running lag-1 product of the third differences and the previous third difference). The
+    product starts at its white-noise value for the running variance (``-0.75 x`` it), the
+    previous difference unknown (the product resumes one sample later)."""
+    old = _decode(doc["scalars"])
+    if old.shape != (kern.ST_LEN_V2,):
+        raise EstimatorError("not a darr_fekf state: wrong scalar block (version 2)")
+    sc = np.empty(kern.ST_LEN)
+    sc[: kern.ST_LEN_V2] = old
+    var = old[kern.ST_SENS_VAR : kern.ST_SENS_VAR + kern.N_CHAN]
+    sc[kern.ST_SENS_COV1 : kern.ST_SENS_COV1 + kern.N_CHAN] = kern.WHITE_LAG1 * var
+    sc[kern.ST_SENS_E_PREV : kern.ST_SENS_E_PREV + kern.N_CHAN] = np.nan
+    return {**doc, "version": 3, "scalars": _encode(sc)}
+
+
+_UPGRADES = {1: _upgrade_v1, 2: _upgrade_v2}
 
 
 def load_state(data: bytes) -> DarrFekfState:
@@ -2103,6 +2146,17 @@ def _status(
 # ----------------------------------------------------------------------------- step
 
 
+def _close_run(state: DarrFekfState) -> tuple[DarrFekfState, FloatArray]:
+    """The run is closed (``end_of_run``): its partial health window, if any, is scored now
+    (rows ``(0 or 1, WIN_LEN)``); residuals, thresholds, filters and decisions carry on."""
+    if not state.scalars[kern.ST_WIN_COUNT] > 0.0:
+        return state, np.empty((0, kern.WIN_LEN))
+    scalars = state.scalars.copy()
+    rows = np.empty((1, kern.WIN_LEN))
+    kern.close_health_window(scalars, state.t_last_s, rows[0])
+    return replace(state, scalars=_frozen(scalars)), rows
+
+
 def step(
     config: DarrFekfConfig, state: DarrFekfState, batch: Batch
 ) -> tuple[DarrFekfState, StepOutputs]:
@@ -2125,6 +2179,13 @@ def step(
     n = int(t.shape[0])
     if n == 0:
         empty = np.empty(0, dtype=np.float64)
+        if batch.end_of_run:
+            _check_state(config, state)
+            state, rows = _close_run(state)
+            return state, StepOutputs(
+                samples={name: empty for name in names},
+                health=[_health(row, config) for row in rows],
+            )
         return state, StepOutputs(samples={name: empty for name in names})
     if not t[0] > state.t_last_s:
         raise OutOfOrderError(
@@ -2174,6 +2235,9 @@ def step(
         t_last_s=float(t[n - 1]),
         **{name: _frozen(a) for name, a in arrays.items()},
     )
+    if batch.end_of_run:
+        new_state, closed = _close_run(new_state)
+        windows = np.concatenate([windows, closed]) if closed.shape[0] else windows
     detail = diagnosis_detail(config, new_state)
     event_list: list[EstimatorEvent] = []
     for row in events:

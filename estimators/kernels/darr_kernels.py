@@ -73,7 +73,9 @@ CFG_REF_RMS = CFG_REF_THR + 7  # 7 reference residual rms
 CFG_REF_NOISE = CFG_REF_RMS + 7  # 9 reference noise variances (NaN: none)
 CFG_NOISE_PERSIST = CFG_REF_NOISE + 9  # samples the running noise stays over the level: noisy
 CFG_FIT_LAMBDA = CFG_NOISE_PERSIST + 1  # forgetting factor of the isolation fit per fit sample
-CFG_LEN = CFG_FIT_LAMBDA + 1
+CFG_WHITE_RATIO = CFG_FIT_LAMBDA + 1  # lower noise level that applies when the extra noise is white
+CFG_WHITE_LEVEL = CFG_WHITE_RATIO + 1  # lag-1 autocorrelation of third differences: white below
+CFG_LEN = CFG_WHITE_LEVEL + 1
 
 N_STAGES = MAX_ORDER + 2  # box stages: the smoother is a B-spline of degree N_STAGES - 1
 
@@ -175,7 +177,12 @@ ST_SENS_VAR = ST_CAL_RAW_N + N_CHAN  # C running noise variance (third differenc
 ST_SENS_RUN = ST_SENS_VAR + N_CHAN  # C current run of unchanged raw samples
 ST_SUB_WITHHELD = ST_SENS_RUN + N_CHAN  # 7 per subsystem: 1.0 while a flagged sensor stops it
 ST_SENS_ABOVE = ST_SUB_WITHHELD + 7  # C samples in a row with the running noise over the level
-ST_LEN = ST_SENS_ABOVE + N_CHAN
+ST_LEN_V2 = ST_SENS_ABOVE + N_CHAN  # end of the version-2 layout; version 3 appends:
+ST_SENS_COV1 = ST_LEN_V2  # C running lag-1 product of the third differences (/20)
+ST_SENS_E_PREV = ST_SENS_COV1 + N_CHAN  # C previous third difference (NaN: none)
+ST_LEN = ST_SENS_E_PREV + N_CHAN
+# lag-1 autocorrelation of the third differences of white noise: -15 / 20
+WHITE_LAG1 = -0.75
 
 # calibration states (ST_CAL_STATE)
 CAL_CALIBRATING = 0.0
@@ -1129,6 +1136,8 @@ def darr_batch(
                 _finish_calibration(cfg, st, cal_buf, cal_seg, res_gain2, row)
                 for c in range(N_CHAN):
                     st[ST_SENS_VAR + c] = st[ST_NOISE_VAR + c]
+                    st[ST_SENS_COV1 + c] = WHITE_LAG1 * st[ST_NOISE_VAR + c]
+                    st[ST_SENS_E_PREV + c] = np.nan
                 n_ev += 1
         # --- sensor self-checks after calibration: stuck (raw value unchanged for stuck_n
         # samples) and noisy (running noise variance over noise_ratio times the calibrated one)
@@ -1154,11 +1163,25 @@ def darr_batch(
                     st[ST_SENS_VAR + c] = (
                         sens_lambda * st[ST_SENS_VAR + c] + (1.0 - sens_lambda) * e * e / 20.0
                     )
+                    e_prev = st[ST_SENS_E_PREV + c]
+                    if math.isfinite(e_prev):
+                        st[ST_SENS_COV1 + c] = (
+                            sens_lambda * st[ST_SENS_COV1 + c]
+                            + (1.0 - sens_lambda) * e * e_prev / 20.0
+                        )
+                    st[ST_SENS_E_PREV + c] = e
+                else:
+                    st[ST_SENS_E_PREV + c] = np.nan
                 if st[ST_SENS_RUN + c] >= stuck_n:
                     sens_now |= 1 << c
-                if (
-                    st[ST_SENS_N] >= cfg[CFG_SENSOR_MIN_N]
-                    and st[ST_SENS_VAR + c] > noise_ratio * noise_var[c]
+                var_c = st[ST_SENS_VAR + c]
+                # white extra noise keeps the third differences' lag-1 autocorrelation at
+                # -0.75; a plant transient (a resonance excited by a fault) moves it towards
+                # cos(w dt), so a lower level applies to white increases only
+                white = st[ST_SENS_COV1 + c] < cfg[CFG_WHITE_LEVEL] * var_c
+                if st[ST_SENS_N] >= cfg[CFG_SENSOR_MIN_N] and (
+                    var_c > noise_ratio * noise_var[c]
+                    or (white and var_c > cfg[CFG_WHITE_RATIO] * noise_var[c])
                 ):
                     st[ST_SENS_ABOVE + c] += 1.0
                 else:
@@ -1417,23 +1440,30 @@ def darr_batch(
                     if not ratio <= st[ST_WIN_MAX + ri]:
                         st[ST_WIN_MAX + ri] = ratio
         if st[ST_WIN_COUNT] >= health_n:
-            row = windows[n_wo]
-            row[WIN_T0] = st[ST_WIN_T0]
-            row[WIN_T1] = tk
-            row[WIN_N] = st[ST_WIN_COUNT]
-            row[WIN_FAULT] = st[ST_WIN_FAULT]
-            row[WIN_MASK] = st[ST_WIN_MASK]
-            for ri in range(N_RES):
-                n_l = st[ST_WIN_N + ri]
-                row[WIN_RMS + ri] = math.sqrt(st[ST_WIN_SUM2 + ri] / n_l) if n_l > 0.0 else np.nan
-                row[WIN_PEAK + ri] = st[ST_WIN_MAX + ri]
+            close_health_window(st, tk, windows[n_wo])
             n_wo += 1
-            st[ST_WIN_COUNT] = 0.0
         for c in range(N_CHAN):
             st[ST_PREV_SMOOTH + c] = smooth[c]
         st[ST_T_LAST] = tk
     st[ST_POS] = pos
     return events[:n_ev].copy(), windows[:n_wo].copy(), 0
+
+
+@njit(cache=True, error_model="numpy")
+def close_health_window(st: FloatArray, t_end: float, row: FloatArray) -> None:
+    """Write the open health window's row (``WIN_*``) ending at ``t_end`` and start a new one
+    (the per-sample loop when a window is full; ``darr_fekf.step`` for the partial window of a
+    run closed by ``end_of_run``)."""
+    row[WIN_T0] = st[ST_WIN_T0]
+    row[WIN_T1] = t_end
+    row[WIN_N] = st[ST_WIN_COUNT]
+    row[WIN_FAULT] = st[ST_WIN_FAULT]
+    row[WIN_MASK] = st[ST_WIN_MASK]
+    for ri in range(N_RES):
+        n_l = st[ST_WIN_N + ri]
+        row[WIN_RMS + ri] = math.sqrt(st[ST_WIN_SUM2 + ri] / n_l) if n_l > 0.0 else np.nan
+        row[WIN_PEAK + ri] = st[ST_WIN_MAX + ri]
+    st[ST_WIN_COUNT] = 0.0
 
 
 @njit(cache=True, error_model="numpy")

@@ -819,6 +819,52 @@ def _decide(
 
 
 @njit(cache=True, error_model="numpy")
+def _relevant_loglik(
+    bank: BankArrays, dec: FloatArray, ll: FloatArray, rel_in: FloatArray, base: FloatArray
+) -> None:
+    """Log-likelihoods of the detection evidence of each surface ``g``: ``rel_in[g]`` the best
+    filter among those *relevant* to a new fault of ``g`` (holding every active fault and
+    ``g``), ``base[g]`` the filter of exactly the active faults (the no-fault filter when none
+    is active). When no filter holds the active faults and ``g`` (a third fault while two are
+    active: the bank has no triple hypotheses) the evidence falls back to the best filter
+    holding ``g`` against the no-fault filter."""
+    nh = ll.shape[0]
+    ns = rel_in.shape[0]
+    n_slots = bank.slot_surface.shape[1]
+    n_act = 0
+    for g in range(ns):
+        rel_in[g] = -np.inf
+        if dec[g, D_ACTIVE] == 1.0:
+            n_act += 1
+    ll_active = -np.inf
+    for f in range(nh):
+        count = 0
+        held = 0
+        for e in range(n_slots):
+            g = bank.slot_surface[f, e]
+            if g >= 0:
+                count += 1
+                if dec[g, D_ACTIVE] == 1.0:
+                    held += 1
+        if held < n_act:
+            continue
+        if count == n_act:
+            ll_active = ll[f]
+        for e in range(n_slots):
+            g = bank.slot_surface[f, e]
+            if g >= 0 and ll[f] > rel_in[g]:
+                rel_in[g] = ll[f]
+    for g in range(ns):
+        base[g] = ll_active
+        if rel_in[g] == -np.inf:
+            base[g] = ll[0]
+            for f in range(nh):
+                for e in range(n_slots):
+                    if bank.slot_surface[f, e] == g and ll[f] > rel_in[g]:
+                        rel_in[g] = ll[f]
+
+
+@njit(cache=True, error_model="numpy")
 def reset_after_clearance(dec: FloatArray, h: int) -> None:
     """Back to "no fault" after a clearance event was written."""
     dec[h, D_ACTIVE] = 0.0
@@ -982,6 +1028,8 @@ def _bank_kernel(
     vsum = np.empty(ns)
     ll_in = np.empty(ns)
     ll_out = np.empty(ns)
+    rel_in = np.empty(ns)
+    rel_base = np.empty(ns)
     best_in = np.full(ns, -1, dtype=np.int64)
     probs = st[lay_probs : lay_probs + nh]
     u_last = st[lay_u : lay_u + m]
@@ -1098,6 +1146,11 @@ def _bank_kernel(
                         best_in[g] = f
                 elif ll[f] > ll_out[g]:
                     ll_out[g] = ll[f]
+        _relevant_loglik(bank, dec, ll, rel_in, rel_base)
+        n_active_before = 0
+        for h in range(ns):
+            if dec[h, D_ACTIVE] == 1.0:
+                n_active_before += 1
         for h in range(ns):
             defl = dsum[h] / pm[h]
             samples[row, k] = defl
@@ -1106,7 +1159,7 @@ def _bank_kernel(
             dec[h, D_DEFL] = defl
             dec[h, D_PROB] = pm[h]
             cmd = u_last[surface_inputs[h]]
-            llr = ll_in[h] - ll[0] if nv > 0 else 0.0
+            llr = rel_in[h] - rel_base[h] if nv > 0 and dec[h, D_ACTIVE] != 1.0 else 0.0
             code = _decide(
                 cfg,
                 dec,
@@ -1132,6 +1185,16 @@ def _bank_kernel(
             if pm[h] > max_fault:
                 max_fault = pm[h]
                 max_hyp = h + 1
+        n_active_after = 0
+        for h in range(ns):
+            if dec[h, D_ACTIVE] == 1.0:
+                n_active_after += 1
+        if n_active_after != n_active_before:
+            # the active set changed: the other surfaces' detection runs restart, their
+            # evidence is now measured against the new base hypothesis
+            for h in range(ns):
+                if dec[h, D_ACTIVE] != 1.0:
+                    dec[h, D_ABOVE_T] = np.nan
         row += ns
         samples[row, k] = nis0
         # health window

@@ -665,7 +665,8 @@ def test_state_round_trip_is_exact() -> None:
 
 def test_state_version_and_garbage_are_refused() -> None:
     config = m.parse_config({})
-    blob = m.dump_state(m.initial_state(config)).replace(b'"version":2', b'"version":7')
+    current = f'"version":{m.STATE_VERSION}'.encode()
+    blob = m.dump_state(m.initial_state(config)).replace(current, b'"version":7')
     with pytest.raises(StateVersionError, match="7"):
         m.load_state(blob)
     with pytest.raises(EstimatorError):
@@ -811,7 +812,33 @@ def test_relation_mode_accepts_any_relation() -> None:
 def test_registry_and_warm_up() -> None:
     from estimators.registry import ACTUATOR_KINDS, get_estimator
 
-    assert get_estimator("darr_fekf") is m and m.STATE_VERSION == 2
+    assert get_estimator("darr_fekf") is m and m.STATE_VERSION == 3
     kind = ACTUATOR_KINDS["sha_ema"]
     assert kind.channels == CHANNELS and kind.default_estimators == {"darr_fekf": {}}
     m.warm_up()
+
+
+def test_end_of_run_closes_the_partial_health_window() -> None:
+    """Every sample of a closed run is in some health window, in one batch or split, and also
+    when the marker comes in an empty batch after the last samples; without the marker the
+    partial window stays open in the state."""
+    config = m.parse_config({"health_window_samples": 2_000})
+    t, ch = _noisy_stream(3)
+    n = len(t)
+    whole = Batch(t_s=t, channels=ch, end_of_run=True)
+    _, out = m.step(config, m.initial_state(config), whole)
+    sizes = [h.n_samples for h in out.health]
+    assert sum(sizes) == n and sizes[:-1] == [2_000] * (n // 2_000) and sizes[-1] == n % 2_000
+    assert out.health[-1].t_end_s == t[-1]
+    health = []
+    state = m.initial_state(config)
+    for lo, hi in ((0, 1_500), (1_500, 4_321), (4_321, n)):
+        part = Batch(t_s=t[lo:hi], channels={k: v[lo:hi] for k, v in ch.items()})
+        state, o = m.step(config, state, part)
+        health += list(o.health)
+    assert sum(h.n_samples for h in health) == n - n % 2_000  # the partial window is open
+    state, o = m.step(config, state, Batch(t_s=np.empty(0), channels={}, end_of_run=True))
+    health += list(o.health)
+    assert health == list(out.health)
+    state, o = m.step(config, state, Batch(t_s=np.empty(0), channels={}, end_of_run=True))
+    assert o.health == []  # nothing left to close

@@ -4,6 +4,7 @@ matrix, the sensor-or-parameter fit, the public config model and the state upgra
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +12,7 @@ import pytest
 
 from estimators import darr_fekf as m
 from estimators.base import Batch, StateVersionError
+from estimators.kernels import darr_kernels as kern
 from estimators.simulators.sha_ema import FaultSchedule, simulate_sha_ema
 from estimators.simulators.sha_ema_scenarios import SensorFault, apply_sensor_faults
 
@@ -276,3 +278,45 @@ def test_plant_transient_is_not_taken_for_sensor_noise() -> None:
     _, _, _, _, hasty_detail = run(hasty, t, ch)
     assert hasty_detail["sensor_flags"] == {"f_c": "noisy"}
     assert hasty_detail["isolation"]["explanation"] == "sensor"
+
+
+@pytest.mark.parametrize("channel", ["f_h", "p_l"])
+def test_white_noise_increase_below_the_general_level_is_flagged(channel) -> None:
+    # extra white noise of 1.0 sd doubles the noise variance, below the general level 2.5: the
+    # lower level for white increases flags it, the general level alone does not; the f_r
+    # transient above (not white) stays unflagged under the lower level
+    fault = SensorFault(channel, "noise", 1.4, 1.0)
+    _, _, _, _, detail = _sensor_run(fault, seed=41, duration=3.4)
+    assert detail["sensor_flags"] == {channel: "noisy"}
+    general_only = {**FAST, "sensors": {"white_noise_ratio": 2.5}}
+    _, _, _, _, detail_off = _sensor_run(fault, raw=general_only, seed=41, duration=3.4)
+    assert detail_off["sensor_flags"] == {}
+
+
+def test_third_difference_lag1_correlation_of_white_noise() -> None:
+    # the statistic the white-noise test reads: -0.75 for white noise, near cos(w dt) for a
+    # sinusoid, whatever the amplitude
+    rng = np.random.default_rng(5)
+    x = rng.standard_normal(200_000)
+    e = x[3:] - 3 * x[2:-1] + 3 * x[1:-2] - x[:-3]
+    assert np.mean(e[1:] * e[:-1]) / np.mean(e * e) == pytest.approx(kern.WHITE_LAG1, abs=0.01)
+    s = 1e3 * np.sin(2.0 * np.arange(20_000))
+    e = s[3:] - 3 * s[2:-1] + 3 * s[1:-2] - s[:-3]
+    assert np.mean(e[1:] * e[:-1]) / np.mean(e * e) == pytest.approx(math.cos(2.0), abs=0.01)
+
+
+def test_version_2_state_loads_and_steps() -> None:
+    # dumped by the version-2 code: differentiator 0.01 s, 0.5 s window, R_il x0.3 from 0.7 s
+    config = m.parse_config({"differentiator_window_s": 0.01, "thresholds": {"window_s": 0.5}})
+    blob = (DATA / "darr_fekf_state_v2.bin").read_bytes()
+    assert json.loads(blob)["version"] == 2
+    state = m.load_state(blob)
+    assert state.version == m.STATE_VERSION and state.fault_active
+    var = state.part("sensor_noise_var")
+    np.testing.assert_array_equal(state.part("sensor_noise_lag1"), kern.WHITE_LAG1 * var)
+    t, ch, _ = simulate_sha_ema(
+        0.2, faults=[FaultSchedule("r_il", 0.0, "step", 1.5e11)], seed=3, t0_s=1.0
+    )
+    state2, out = m.step(config, state, Batch(t, ch))
+    assert state2.fault_active and np.isfinite(out.samples["r7"]).all()
+    assert np.all(np.isfinite(state2.part("sensor_last_third_difference")[:7]))

@@ -585,9 +585,10 @@ def test_episode_statistics_are_precision_weighted() -> None:
 DATA = Path(__file__).parent / "data"
 
 
-@pytest.mark.parametrize("version", [1, 2])
+@pytest.mark.parametrize("version", [1, 2, 3])
 def test_older_state_fixtures_load_and_step(version) -> None:
-    """States dumped by earlier code (version 1: equal-weight episode sums; version 2) load,
+    """States dumped by earlier code (version 1: equal-weight episode sums; version 2; version
+    3, the current layout, dumped before the detection evidence was re-based) load,
     keep their filters and probabilities, and step on: the stuck right aileron of the fixture's
     flight (6 s, stuck at +12 deg from 2 s) stays the active fault."""
     blob = (DATA / f"stmmae_state_v{version}.bin").read_bytes()
@@ -812,3 +813,47 @@ def test_end_of_run_closes_the_partial_health_window(flight) -> None:
     assert health == list(out.health)
     _, open_run = stmmae.step(config, stmmae.initial_state(config), Batch(t[:n], whole.channels))
     assert [h.n_samples for h in open_run.health] == [700, 700]
+
+
+def test_detection_evidence_is_measured_against_the_active_faults() -> None:
+    """The evidence for a new fault of a surface compares the best filter that holds every
+    active fault and that surface against the filter of exactly the active faults: with none
+    active, the best filter holding the surface against the no-fault filter (as before); with
+    one active, the pair of it and the surface against the active fault's own filter (the first
+    fault's misfit in the no-fault filter is no evidence for a second one, which it was before);
+    with two active, no filter holds a third, and the evidence falls back to the best filter
+    holding the surface against the no-fault filter."""
+    config = stmmae.parse_config({})
+    arr = config.arrays
+    hyps = config.hypotheses
+    surfaces = config.model.surfaces
+    ns = len(surfaces)
+    rng = np.random.default_rng(4)
+    ll = rng.normal(size=len(hyps))
+    ll[hyps.index("aileron_left+rudder")] = 50.0  # a pair fits best
+    dec = np.zeros((ns, kern.D_LEN))
+    rel_in, base = np.empty(ns), np.empty(ns)
+
+    def best_holding(s: str) -> float:
+        return max(ll[i] for i, h in enumerate(hyps) if s in h.split("+"))
+
+    kern._relevant_loglik(arr, dec, ll, rel_in, base)
+    assert np.all(base == ll[0])
+    for h, s in enumerate(surfaces):
+        assert rel_in[h] == best_holding(s)
+    rudder = surfaces.index("rudder")
+    dec[rudder, kern.D_ACTIVE] = 1.0
+    kern._relevant_loglik(arr, dec, ll, rel_in, base)
+    assert np.all(base == ll[hyps.index("rudder")])
+    for h, s in enumerate(surfaces):
+        if s != "rudder":
+            pair = "+".join(sorted((s, "rudder"), key=surfaces.index))
+            assert rel_in[h] == ll[hyps.index(pair)]
+    assert rel_in[surfaces.index("aileron_left")] == 50.0
+    elevator = surfaces.index("elevator_left")
+    dec[elevator, kern.D_ACTIVE] = 1.0
+    kern._relevant_loglik(arr, dec, ll, rel_in, base)
+    for h, s in enumerate(surfaces):
+        if h in (rudder, elevator):
+            continue
+        assert base[h] == ll[0] and rel_in[h] == best_holding(s)
