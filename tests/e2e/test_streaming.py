@@ -430,10 +430,13 @@ def small_queue_server(tmp_path: Path) -> Any:
         url,
         tmp_path / "server.log",
         # One frame per apply transaction: events come one by one, not in bursts above the queue.
+        # The queue still leaves the fast subscriber, which shares a busy event loop with the
+        # sender, room to fall behind by a hundred events; the stalled one overflows it anyway
+        # (it never reads, and 2000 events are far more than its buffers and queue hold).
         # A small kernel send buffer, so that a subscriber that reads nothing stalls the server's
         # sends after tens of kilobytes rather than megabytes.
         {
-            "FLEETHEALTH_WS_SUBSCRIBER_QUEUE": "8",
+            "FLEETHEALTH_WS_SUBSCRIBER_QUEUE": "100",
             "FLEETHEALTH_PROCESSOR_MAX_SAMPLES_PER_TXN": "5",
             "FLEETHEALTH_SOCKET_SEND_BUFFER_BYTES": "8192",
             # The stalled subscriber reads nothing (not even pings) until ingest has finished,
@@ -482,9 +485,9 @@ def test_a_slow_subscriber_is_dropped_and_does_not_slow_ingest(small_queue_serve
         async with FrameStreamer(server.url, server.api_key, TAIL, "s") as fs:
             for t, c in frames:
                 await fs.send(c, t_s=t)
-            await fs.drain(120)
+            await fs.drain(300)
             streamed = len(fs.stats.results)
-        await asyncio.wait_for(reader, 60)
+        await asyncio.wait_for(reader, 120)
         await fast.close()
         # Now the slow one reads: what was buffered, then the close.
         slow_seen = 0
