@@ -42,6 +42,9 @@ class Settings(BaseSettings):
     store_sample_outputs: bool = True
     log_retention_s: float | None = Field(default=None, gt=0)
     warm_kernels: bool = True
+    # Child processes compiling estimator kinds at once into numba's cache at start-up; 0
+    # compiles inside the server (app/kernels.py, docs/operations.md "Start-up").
+    warm_kernels_processes: int = Field(default=2, ge=0)
     # WebSocket streaming (docs/api.md, "Streaming").
     ws_max_frame_bytes: int = Field(default=16 * 1024 * 1024, gt=0)
     ws_max_inflight: int = Field(default=16, gt=0)

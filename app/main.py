@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import logging
-import threading
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
@@ -18,6 +17,7 @@ from app.errors import install_handlers
 from app.faults import router as faults_router
 from app.fleet import router as fleet_router
 from app.health import router as health_router
+from app.kernels import KernelWarmup
 from app.processing.processor import Processor
 from app.system import router as system_router
 from app.telemetry import router as telemetry_router
@@ -27,9 +27,9 @@ from estimators.registry import ESTIMATORS
 
 log = logging.getLogger("fleethealth")
 
-# At shutdown, how long to wait for a kernel warm-up still running (a first numba compile of
-# every kernel takes tens of seconds on a cold cache).
-WARM_JOIN_TIMEOUT_S = 60.0
+# At shutdown, how long to wait for the kernel warm-up (its compiling children are killed; a
+# load from numba's cache in progress ends within about a second).
+WARM_JOIN_TIMEOUT_S = 2.0
 
 DESCRIPTION = """\
 Health monitoring of aircraft actuators across a fleet: telemetry ingest per tail number,
@@ -40,43 +40,42 @@ Authenticate with `Authorization: Bearer <key>`. Errors have one shape:
 """
 
 
-def warm_kernels() -> None:
-    """Compile (or load from numba's cache) every estimator kernel once."""
-    for kind in ESTIMATORS.values():
-        kind.warm_up()
-
-
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or get_settings()
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         db = Database(settings.database_url, sqlite_synchronous=settings.sqlite_synchronous)
-        processor = Processor(db, settings)
+        kernels = KernelWarmup(
+            list(ESTIMATORS),
+            processes=settings.warm_kernels_processes,
+            enabled=settings.warm_kernels,
+        )
+        processor = Processor(db, settings, ready_kinds=kernels.applicable_kinds)
         app.state.db = db
         app.state.settings = settings
         app.state.processor = processor
-        app.state.kernels_warm = threading.Event()
+        app.state.kernels = kernels
+        app.state.kernels_warm = kernels.done
         if settings.bootstrap_admin_key:
             with db.write() as s:
                 ensure_key(s, settings.bootstrap_operator, settings.bootstrap_admin_key,
                            list(SCOPES), name="bootstrap")
 
-        def _warm_then_process() -> None:
-            # Batches are accepted (and durable) while the kernels compile; the processor starts
-            # once they are ready so that no apply pays a compile.
-            if settings.warm_kernels:
-                warm_kernels()
-            app.state.kernels_warm.set()
+        # Batches are accepted (and durable) while the kernels compile; the processor applies a
+        # stream once the kinds of all its estimators are ready, so no apply pays a compile.
+        def _kind_ready(kind: str) -> None:
             if settings.processor_enabled:
-                processor.start()
+                processor.recover()  # wake the streams that waited for this kind
 
-        warm = threading.Thread(target=_warm_then_process, name="fleethealth-warm", daemon=True)
-        warm.start()
+        kernels.on_ready = _kind_ready
+        if settings.processor_enabled:
+            processor.start()
+        kernels.start()
         try:
             yield
         finally:
-            warm.join(timeout=WARM_JOIN_TIMEOUT_S)
+            kernels.stop(timeout_s=WARM_JOIN_TIMEOUT_S)
             processor.stop()
             db.dispose()
 

@@ -27,6 +27,7 @@ import logging
 import queue
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from prometheus_client import Counter, Gauge, Histogram
@@ -74,10 +75,19 @@ class WaitOutcome:
 class Processor:
     """A background thread that applies pending batches, woken by ingest and by a periodic scan."""
 
-    def __init__(self, db: Database, settings: Settings, hub: Hub | None = None) -> None:
+    def __init__(
+        self,
+        db: Database,
+        settings: Settings,
+        hub: Hub | None = None,
+        ready_kinds: Callable[[], frozenset[str] | None] = lambda: None,
+    ) -> None:
         self.db = db
         self.settings = settings
         self.hub = hub or Hub()
+        # Estimator kinds whose kernels are ready (None: all); other streams wait, and are
+        # woken by recover() when their kind becomes ready.
+        self.ready_kinds = ready_kinds
         self._meta: dict[int, StreamMeta] = {}
         self._queue: queue.SimpleQueue[int | None] = queue.SimpleQueue()
         self._applied: dict[int, int] = {}
@@ -154,6 +164,7 @@ class Processor:
                         max_batches=self.settings.processor_max_batches_per_txn,
                         store_outputs=self.settings.store_sample_outputs,
                         is_sqlite=self.db.is_sqlite,
+                        ready_kinds=self.ready_kinds(),
                     )
             except StateUnreadable as exc:
                 if exc.estimator in replayed:

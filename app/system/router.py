@@ -19,9 +19,17 @@ def healthz() -> dict[str, str]:
     return {"status": "ok"}
 
 
-@router.get("/readyz", responses={503: {"description": "Not ready"}})
+@router.get("/readyz", responses={503: {"description": "Not ready (the body says what is missing)"}})
 def readyz(request: Request) -> Response:
-    """The database answers, its schema is at the head migration and the kernels are warm."""
+    """The database answers, its schema is at the head migration and every estimator kind's
+    kernels are ready.
+
+    ``checks`` holds ``database``, ``schema`` and ``kernels`` (``ok`` or what is missing);
+    ``kernels`` holds each estimator kind's warm-up: ``{"status": "waiting" | "compiling" |
+    "loading" | "ready" | "failed", "seconds": ..., "error": ...}``. While kernels compile the
+    service already accepts telemetry (durable), and each kind's streams are applied as soon as
+    that kind is ready: ``database`` and ``schema`` at ``ok`` mean batches can be sent.
+    """
     state = request.app.state
     checks: dict[str, str] = {}
     try:
@@ -33,9 +41,14 @@ def readyz(request: Request) -> Response:
         head = head_revision(state.db.url)
         checks["database"] = "ok"
         checks["schema"] = "ok" if rev == head else f"at {rev}, head is {head}"
-    checks["kernels"] = "ok" if state.kernels_warm.is_set() else "warming"
+    kernels = state.kernels.snapshot()
+    waiting = sorted(kind for kind, k in kernels.items() if k["status"] != "ready")
+    checks["kernels"] = "ok" if not waiting else "not ready: " + ", ".join(
+        f"{kind} {kernels[kind]['status']}" for kind in waiting
+    )
     ok = all(v == "ok" for v in checks.values())
-    return json_response({"status": "ok" if ok else "not ready", "checks": checks}, status_code=200 if ok else 503)
+    body = {"status": "ok" if ok else "not ready", "checks": checks, "kernels": kernels}
+    return json_response(body, status_code=200 if ok else 503)
 
 
 @router.get("/metrics", response_class=Response)
