@@ -39,6 +39,21 @@ class LiveServer:
     def start(self, timeout_s: float = 300.0) -> None:
         # Bounded but generous: with a cold numba cache the first server compiles every kernel
         # before /readyz answers, which takes minutes on a busy two-core machine.
+        self.launch()
+        assert self.proc is not None
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"server exited with {self.proc.returncode}; see {self.log_path}")
+            with contextlib.suppress(httpx.HTTPError):  # not listening yet
+                if httpx.get(f"{self.url}/readyz", timeout=1.0).status_code == 200:
+                    return
+            time.sleep(0.2)
+        self.stop()
+        raise RuntimeError(f"server not ready within {timeout_s} s; see {self.log_path}")
+
+    def launch(self) -> None:
+        """Start the process without waiting for it."""
         env = {
             **os.environ,
             "FLEETHEALTH_DATABASE_URL": self.db_url,
@@ -51,16 +66,6 @@ class LiveServer:
             [FLEETHEALTH, "serve", "--host", "127.0.0.1", "--port", str(self.port), "--log-level", "warning"],
             env=env, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT,
         )
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if self.proc.poll() is not None:
-                raise RuntimeError(f"server exited with {self.proc.returncode}; see {self.log_path}")
-            with contextlib.suppress(httpx.HTTPError):  # not listening yet
-                if httpx.get(f"{self.url}/readyz", timeout=1.0).status_code == 200:
-                    return
-            time.sleep(0.2)
-        self.stop()
-        raise RuntimeError(f"server not ready within {timeout_s} s; see {self.log_path}")
 
     def kill(self) -> None:
         """SIGKILL: no shutdown handler runs."""
