@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import errno
 import json
 import math
 import os
@@ -16,6 +17,10 @@ if TYPE_CHECKING:
     from app.config import Settings
 
 DEMO_OPERATOR = "demo"
+#: Settings of ``serve --demo`` unless given by their FLEETHEALTH_* variable: applied batches'
+#: raw payloads are dropped after ten minutes and per-sample outputs keep the last 15 minutes of
+#: each stream, so that the demo's database stays small (docs/operations.md, "The demo").
+DEMO_DEFAULTS: dict[str, object] = {"log_retention_s": 600.0, "sample_output_retention_s": 900.0}
 
 
 def _settings() -> Settings:
@@ -34,14 +39,25 @@ def cmd_migrate(args: argparse.Namespace) -> int:
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
+    s = _settings()
+    host = args.host or s.host
+    port = args.port or s.port
+    # Bind first: a busy port is one clear line before anything else happens.
+    try:
+        sock = _listen(host, port, s.socket_send_buffer_bytes)
+    except OSError as exc:
+        print(f"fleethealth: cannot listen on {host}:{port}: {exc.strerror or exc}"
+              + (" (is another fleethealth running? pick another port with --port or FLEETHEALTH_PORT)"
+                 if exc.errno == errno.EADDRINUSE else ""), file=sys.stderr)
+        return 1
     import uvicorn
 
     from app.main import create_app
     from app.migrate import upgrade
 
-    s = _settings()
-    host = args.host or s.host
-    port = args.port or s.port
+    _log_to_stderr(args.log_level)
+    if args.demo:
+        s = _demo_settings(s)
     if not args.no_migrate:
         upgrade(s.database_url)
     url = f"http://{host}:{port}"
@@ -53,31 +69,54 @@ def cmd_serve(args: argparse.Namespace) -> int:
         db = Database(s.database_url)
         with db.write() as session:
             if s.bootstrap_admin_key:
-                key = s.bootstrap_admin_key
-                ensure_key(session, s.bootstrap_operator, key, list(SCOPES), name="bootstrap")
+                key, operator = s.bootstrap_admin_key, s.bootstrap_operator
+                ensure_key(session, operator, key, list(SCOPES), name="bootstrap")
             else:
-                _, key = create_key(session, DEMO_OPERATOR, list(SCOPES), name="demo")
+                operator = DEMO_OPERATOR
+                _, key = create_key(session, operator, list(SCOPES), name="demo")
         db.dispose()
         print(f"\n  fleethealth demo: {url}\n  API docs:        {url}/docs\n  demo API key:    {key}\n"
+              f"  the demo fleet belongs to operator {operator!r}: keys of other operators do not see it;\n"
+              f"  more keys for it: fleethealth keys create --operator {operator} --scopes read\n"
               f"  try: curl -H 'Authorization: Bearer {key}' {url}/v1/fleet/health\n", flush=True)
         threading.Thread(target=_demo_feeder, args=(url, key, stop), daemon=True).start()
     else:
         print(f"fleethealth serving on {url} (API docs at {url}/docs)", flush=True)
+    access_log = args.access_log if args.access_log is not None else not args.demo
     config = uvicorn.Config(
         create_app(s),
         host=host,
         port=port,
         log_level=args.log_level,
+        access_log=access_log,
         ws_max_size=s.ws_max_frame_bytes,
         ws_ping_interval=s.ws_ping_interval_s,
         ws_ping_timeout=s.ws_ping_timeout_s,
         timeout_graceful_shutdown=math.ceil(s.shutdown_timeout_s),
     )
     try:
-        uvicorn.Server(config).run(sockets=[_listen(host, port, s.socket_send_buffer_bytes)])
+        uvicorn.Server(config).run(sockets=[sock])
     finally:
         stop.set()
     return 0
+
+
+def _demo_settings(s: Settings) -> Settings:
+    """The demo's settings: those given, with retention defaults that keep its database small."""
+    demo = {name: value for name, value in DEMO_DEFAULTS.items() if f"FLEETHEALTH_{name}".upper() not in os.environ}
+    return s.model_copy(update=demo)
+
+
+def _log_to_stderr(level: str) -> None:
+    """The service's own messages (kernels ready, streams failed, the demo) on stderr."""
+    import logging
+
+    logger = logging.getLogger("fleethealth")
+    if not logger.handlers:
+        handler = logging.StreamHandler()
+        handler.setFormatter(logging.Formatter("%(levelname)s:     %(name)s: %(message)s"))
+        logger.addHandler(handler)
+    logger.setLevel(level.upper() if level.upper() in logging.getLevelNamesMapping() else logging.INFO)
 
 
 def _listen(host: str, port: int, send_buffer_bytes: int | None) -> socket.socket:
@@ -89,6 +128,9 @@ def _listen(host: str, port: int, send_buffer_bytes: int | None) -> socket.socke
     if send_buffer_bytes is not None:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, send_buffer_bytes)
     sock.bind((host, port))
+    # Listen at once: with SO_REUSEADDR a second process could still bind a port that is bound
+    # but not listening yet.
+    sock.listen(2048)
     sock.set_inheritable(True)
     return sock
 
@@ -181,6 +223,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--demo", action="store_true", help="also feed a simulated demo fleet")
     sp.add_argument("--no-migrate", action="store_true", help="do not apply migrations first")
     sp.add_argument("--log-level", default="info")
+    sp.add_argument("--access-log", action=argparse.BooleanOptionalAction, default=None,
+                    help="one line per request (default: on, off with --demo)")
     sp.set_defaults(func=cmd_serve)
 
     sp = sub.add_parser("migrate", help="apply database migrations up to head")

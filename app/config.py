@@ -41,6 +41,9 @@ class Settings(BaseSettings):
     processor_retry_backoff_max_s: float = Field(default=60.0, gt=0)
     store_sample_outputs: bool = True
     log_retention_s: float | None = Field(default=None, gt=0)
+    # Per-sample outputs kept per stream, in seconds of stream time before its last applied
+    # sample (None keeps them all; health windows, events and RUL are always kept).
+    sample_output_retention_s: float | None = Field(default=None, gt=0)
     warm_kernels: bool = True
     # Child processes compiling estimator kinds at once into numba's cache at start-up; 0
     # compiles inside the server (app/kernels.py, docs/operations.md "Start-up").

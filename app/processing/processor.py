@@ -60,6 +60,8 @@ APPLY_SECONDS = Histogram(
 
 # A waiter re-reads the applied mark this often: another process may have applied the batch.
 WAIT_POLL_S = 0.5
+# Per-sample output retention runs at most this often (it scans the table).
+SAMPLE_OUTPUT_PRUNE_EVERY_S = 60.0
 # Shortest sleep of the loop between scans (wake-ups arrive through the queue anyway).
 MIN_LOOP_SLEEP_S = 0.05
 
@@ -286,6 +288,7 @@ class Processor:
     # ------------------------------------------------------------------ loop
     def _run(self) -> None:
         next_scan = 0.0
+        next_prune = 0.0
         while not self._stop.is_set():
             now = time.monotonic()
             if now >= next_scan:
@@ -294,6 +297,10 @@ class Processor:
                     if self.settings.log_retention_s is not None:
                         with self.db.write() as s:
                             repository.drop_applied_payloads(s, self.settings.log_retention_s)
+                    if self.settings.sample_output_retention_s is not None and now >= next_prune:
+                        next_prune = now + SAMPLE_OUTPUT_PRUNE_EVERY_S
+                        with self.db.write() as s:
+                            repository.drop_old_sample_outputs(s, self.settings.sample_output_retention_s)
                 except Exception:
                     log.exception("periodic scan failed")
                 next_scan = now + self.settings.processor_scan_interval_s
