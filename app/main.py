@@ -7,6 +7,7 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
+from fastapi.staticfiles import StaticFiles
 
 from app import __version__
 from app.auth import router as auth_router
@@ -84,6 +85,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         version=__version__,
         description=DESCRIPTION,
         lifespan=lifespan,
+        # /docs and /redoc are the system router's, with local assets (no CDN).
+        docs_url=None,
+        redoc_url=None,
+    )
+    app.mount(
+        system_router.DOCS_ASSETS_URL,
+        StaticFiles(directory=system_router.DOCS_ASSETS_DIR),
+        name="docs-assets",
     )
     install_handlers(app)
     app.add_middleware(ControlCharGuard)

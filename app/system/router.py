@@ -1,9 +1,17 @@
-"""Liveness, readiness and Prometheus metrics (no authentication)."""
+"""Liveness, readiness, Prometheus metrics and the API docs pages (no authentication)."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import fastapi_offline
 from fastapi import APIRouter, Request
-from fastapi.responses import Response
+from fastapi.openapi.docs import (
+    get_redoc_html,
+    get_swagger_ui_html,
+    get_swagger_ui_oauth2_redirect_html,
+)
+from fastapi.responses import HTMLResponse, Response
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
 from app.errors import json_response
@@ -56,3 +64,61 @@ def metrics() -> Response:
     """Prometheus text exposition: ingest, apply, streaming and stream failure counters
     (``fleethealth_streams_failed`` counts the streams no longer applied)."""
     return Response(generate_latest(), media_type=CONTENT_TYPE_LATEST)
+
+
+# ----------------------------------------------------------------------------------- API docs
+#: The Swagger UI and ReDoc assets shipped by the fastapi-offline package, served by the app at
+#: DOCS_ASSETS_URL (create_app mounts them): /docs and /redoc work with no internet.
+DOCS_ASSETS_DIR = Path(fastapi_offline.__file__).parent / "static"
+DOCS_ASSETS_URL = "/docs/assets"
+OAUTH2_REDIRECT_URL = "/docs/oauth2-redirect"
+#: The browser loads nothing from another host: ReDoc's bundle shows a vendor logo from its
+#: CDN, which this blocks (the image is then left out). Inline scripts and styles are the
+#: pages' own; ReDoc's search runs in a blob: worker.
+DOCS_CSP = (
+    "default-src 'self'; script-src 'self' 'unsafe-inline'; style-src 'self' 'unsafe-inline'; "
+    "img-src 'self' data:; font-src 'self' data:; worker-src 'self' blob:; connect-src 'self'"
+)
+
+
+def _docs_page(page: HTMLResponse) -> HTMLResponse:
+    page.headers["Content-Security-Policy"] = DOCS_CSP
+    return page
+
+
+@router.get("/docs", include_in_schema=False)
+def swagger_ui(request: Request) -> HTMLResponse:
+    """Swagger UI over /openapi.json, with local assets."""
+    root = request.scope.get("root_path", "")
+    return _docs_page(
+        get_swagger_ui_html(
+            openapi_url=f"{root}{request.app.openapi_url}",
+            title=f"{request.app.title} - Swagger UI",
+            oauth2_redirect_url=f"{root}{OAUTH2_REDIRECT_URL}",
+            swagger_js_url=f"{root}{DOCS_ASSETS_URL}/swagger-ui-bundle.js",
+            swagger_css_url=f"{root}{DOCS_ASSETS_URL}/swagger-ui.css",
+            swagger_favicon_url=f"{root}{DOCS_ASSETS_URL}/favicon.png",
+            # No validator badge: it would load an image from the validator's host.
+            swagger_ui_parameters={"validatorUrl": None},
+        )
+    )
+
+
+@router.get(OAUTH2_REDIRECT_URL, include_in_schema=False)
+def swagger_ui_redirect() -> HTMLResponse:
+    return _docs_page(get_swagger_ui_oauth2_redirect_html())
+
+
+@router.get("/redoc", include_in_schema=False)
+def redoc(request: Request) -> HTMLResponse:
+    """ReDoc over /openapi.json, with local assets and no web fonts."""
+    root = request.scope.get("root_path", "")
+    return _docs_page(
+        get_redoc_html(
+            openapi_url=f"{root}{request.app.openapi_url}",
+            title=f"{request.app.title} - ReDoc",
+            redoc_js_url=f"{root}{DOCS_ASSETS_URL}/redoc.standalone.js",
+            redoc_favicon_url=f"{root}{DOCS_ASSETS_URL}/favicon.png",
+            with_google_fonts=False,
+        )
+    )
