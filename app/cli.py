@@ -8,8 +8,8 @@ import json
 import math
 import os
 import socket
+import subprocess
 import sys
-import threading
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -61,7 +61,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     if not args.no_migrate:
         upgrade(s.database_url)
     url = f"http://{host}:{port}"
-    stop = threading.Event()
+    feeder: subprocess.Popen[bytes] | None = None
     if args.demo:
         from app.auth.service import SCOPES, create_key, ensure_key
         from app.db import Database
@@ -79,7 +79,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
               f"  the demo fleet belongs to operator {operator!r}: keys of other operators do not see it;\n"
               f"  more keys for it: fleethealth keys create --operator {operator} --scopes read\n"
               f"  try: curl -H 'Authorization: Bearer {key}' {url}/v1/fleet/health\n", flush=True)
-        threading.Thread(target=_demo_feeder, args=(url, key, stop), daemon=True).start()
+        feeder = _start_demo_feeder(url, key)
     else:
         print(f"fleethealth serving on {url} (API docs at {url}/docs)", flush=True)
     access_log = args.access_log if args.access_log is not None else not args.demo
@@ -94,10 +94,12 @@ def cmd_serve(args: argparse.Namespace) -> int:
         ws_ping_timeout=s.ws_ping_timeout_s,
         timeout_graceful_shutdown=math.ceil(s.shutdown_timeout_s),
     )
+    server = uvicorn.Server(config) if feeder is None else _demo_server(config, feeder)
     try:
-        uvicorn.Server(config).run(sockets=[sock])
+        server.run(sockets=[sock])
     finally:
-        stop.set()
+        if feeder is not None:
+            _stop_demo_feeder(feeder)
     return 0
 
 
@@ -135,15 +137,41 @@ def _listen(host: str, port: int, send_buffer_bytes: int | None) -> socket.socke
     return sock
 
 
-def _demo_feeder(url: str, key: str, stop: threading.Event) -> None:
-    try:
-        from fleethealth_tools.simulate import run_simulation
+def _start_demo_feeder(url: str, key: str) -> subprocess.Popen[bytes]:
+    """``fleethealth simulate`` in a child process: its plant simulations (and their first
+    numba compile) run beside the server rather than in its interpreter. It waits for the
+    server itself; every second aircraft's flight controls get surface faults and the taxi
+    drives wear out at different rates. Its stdout is the terminal's; it stops when the server
+    stops, or when its stdin closes (the server died)."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "app.cli", "simulate", "--url", url, "--flight-controls",
+         "--friction-drives", "--stop-on-stdin-eof"],
+        stdin=subprocess.PIPE,
+        env={**os.environ, "FLEETHEALTH_API_KEY": key},  # not on the command line (ps shows it)
+    )
 
-        # Waits for /readyz itself. Every second aircraft's flight controls get surface faults;
-        # the taxi drives wear out at different rates.
-        run_simulation(url, key, stop_event=stop, flight_controls=True, friction_drives=True)
-    except Exception as exc:  # the demo feeder must never take the server down
-        print(f"demo simulator stopped: {exc}", file=sys.stderr)
+
+def _demo_server(config: Any, feeder: subprocess.Popen[bytes]) -> Any:
+    """uvicorn's server, stopping the demo feeder first when it shuts down (uvicorn ends the
+    process by re-raising SIGTERM once shut down, so a ``finally`` after ``run`` may not run)."""
+    import uvicorn
+
+    class DemoServer(uvicorn.Server):
+        async def shutdown(self, sockets: Any = None) -> None:
+            _stop_demo_feeder(feeder)
+            await super().shutdown(sockets)
+
+    return DemoServer(config)
+
+
+def _stop_demo_feeder(feeder: subprocess.Popen[bytes]) -> None:
+    if feeder.poll() is None:
+        feeder.terminate()
+        try:
+            feeder.wait(5)
+        except subprocess.TimeoutExpired:
+            feeder.kill()
+            feeder.wait()
 
 
 def cmd_keys(args: argparse.Namespace) -> int:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import math
 import os
 import threading
@@ -689,6 +690,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
+        "--stop-on-stdin-eof",
+        action="store_true",
+        help="stop when standard input closes (for a process that runs the simulator as its "
+        "child, as `fleethealth serve --demo` does)",
+    )
+    parser.add_argument(
         "--ready-timeout-s",
         type=float,
         default=None,
@@ -700,12 +707,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+#: After standard input closes, seconds left to stop after the current batch before exiting.
+STDIN_EOF_GRACE_S = 2.0
+
+
+def _stop_on_stdin_eof(stop_event: threading.Event) -> None:
+    """Stop once standard input closes (raw reads: no buffered reader's lock): after the
+    current batch, or at once if that batch takes longer than :data:`STDIN_EOF_GRACE_S`."""
+    with contextlib.suppress(OSError):
+        while os.read(0, 4096):
+            pass
+    stop_event.set()
+    time.sleep(STDIN_EOF_GRACE_S)
+    os._exit(0)
+
+
 def run(args: argparse.Namespace) -> int:
     """Entry point of ``fleethealth simulate``; returns the process exit code."""
     if not args.api_key:
         print("simulate: give --api-key or set FLEETHEALTH_API_KEY")
         return 2
     stop_event = threading.Event()
+    if args.stop_on_stdin_eof:
+        threading.Thread(target=_stop_on_stdin_eof, args=(stop_event,), daemon=True).start()
     try:
         summary = run_simulation(
             args.url,
