@@ -52,8 +52,8 @@ class LiveServer:
         self.stop()
         raise RuntimeError(f"server not ready within {timeout_s} s; see {self.log_path}")
 
-    def launch(self) -> None:
-        """Start the process without waiting for it."""
+    def launch(self, args: list[str] | None = None) -> None:
+        """Start the process without waiting for it (``args`` replace ``--log-level warning``)."""
         env = {
             **os.environ,
             "FLEETHEALTH_DATABASE_URL": self.db_url,
@@ -63,7 +63,8 @@ class LiveServer:
         }
         log = open(self.log_path, "ab")  # noqa: SIM115 (closed with the process)
         self.proc = subprocess.Popen(
-            [FLEETHEALTH, "serve", "--host", "127.0.0.1", "--port", str(self.port), "--log-level", "warning"],
+            [FLEETHEALTH, "serve", "--host", "127.0.0.1", "--port", str(self.port),
+             *(args if args is not None else ["--log-level", "warning"])],
             env=env, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT,
         )
 

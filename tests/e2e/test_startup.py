@@ -78,3 +78,43 @@ def test_sigterm_during_cold_compile(tmp_path: Path) -> None:
         assert not _processes_with_env(cache), "compiling children outlived the server"
     finally:
         server.stop()
+
+
+def _tails_with_data(url: str, key: str) -> set[str]:
+    with contextlib.suppress(httpx.HTTPError, ValueError, KeyError):
+        r = httpx.get(f"{url}/v1/fleet/health", headers={"Authorization": f"Bearer {key}"}, timeout=5.0)
+        return {
+            a["tail"] for a in r.json()["aircraft"] if any(x["last_applied_seq"] > 0 for x in a["actuators"])
+        }
+    return set()
+
+
+def test_demo_fills_the_fleet_and_stops_with_its_feeder(tmp_path: Path) -> None:
+    """``serve --demo``: three aircraft get applied data, the request log stays off, the demo's
+    own lines show, and SIGTERM ends the server and its simulator child."""
+    key = "e2e-demo-key-0123456789abcdef"
+    server = LiveServer(f"sqlite:///{tmp_path / 'demo.db'}", tmp_path / "server.log",
+                        extra_env={"FLEETHEALTH_BOOTSTRAP_ADMIN_KEY": key})
+    server.launch(["--demo", "--log-level", "info"])
+    assert server.proc is not None
+    try:
+        deadline = time.monotonic() + WAIT_S
+        tails: set[str] = set()
+        while time.monotonic() < deadline and server.proc.poll() is None and len(tails) < 3:
+            tails = _tails_with_data(server.url, key)
+            time.sleep(0.5)
+        assert tails == {"FH-001", "FH-002", "FH-003"}, f"see {server.log_path}"
+        feeders = [pid for pid in _processes_with_env(key) if pid != server.proc.pid]
+        assert feeders, "no simulator child"
+        server.proc.send_signal(signal.SIGTERM)
+        server.proc.wait(EXIT_BOUND_S)
+        deadline = time.monotonic() + EXIT_BOUND_S
+        while set(_processes_with_env(key)) & set(feeders) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not set(_processes_with_env(key)) & set(feeders), "the simulator outlived the server"
+    finally:
+        server.stop()
+    log = server.log_path.read_text()
+    assert "the demo fleet belongs to operator 'default'" in log
+    assert "simulate: FH-001/ema-left" in log
+    assert "POST /v1/" not in log  # no request log in the demo
