@@ -5,7 +5,7 @@ import it and to compile its kernels (wall and CPU), then, in another fresh proc
 load them from the cache just filled.
 
 Part ``modes``: ``app.kernels.KernelWarmup`` on a fresh cache, compiling in the server's thread
-(``processes=0``) or in 1 or 2 child processes: when each kind is ready, and how late a 10 ms
+(``processes=0``) or in 2 child processes: when each kind is ready, and how late a 10 ms
 timer thread in the server wakes up meanwhile (the interpreter lock a compile in the server
 holds is what requests wait for), and how long ``stop()`` takes in the middle of it.
 
@@ -28,6 +28,8 @@ from pathlib import Path
 from typing import Any
 
 KINDS = ("fakf", "deterioration_ekf", "stmmae", "darr_fekf")
+#: Child processes of the compared warm-ups (0: in the server's thread).
+MODES = (0, 2)
 
 _MEASURE = textwrap.dedent(
     """
@@ -129,7 +131,7 @@ def part_modes() -> None:
     root = str(Path(__file__).resolve().parents[1])
     print("\nserver warm-up on a fresh numba cache: thread in the server vs child processes")
     print(f"{'mode':<12} " + " ".join(f"{k:>18}" for k in KINDS) + f" {'all s':>7} {'timer late p50/p99/max ms':>26}")
-    for processes in (0, 1, 2):
+    for processes in MODES:
         with tempfile.TemporaryDirectory() as cache:
             env = {**os.environ, "NUMBA_CACHE_DIR": cache}
             out = subprocess.run([sys.executable, "-c", _MODE, str(processes), "run", root], env=env,
