@@ -50,7 +50,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         kernels = KernelWarmup(
             list(ESTIMATORS),
             processes=settings.warm_kernels_processes,
-            enabled=settings.warm_kernels,
+            # A process that never applies (ingest only) needs no kernels.
+            enabled=settings.warm_kernels and settings.processor_enabled,
         )
         processor = Processor(db, settings, ready_kinds=kernels.applicable_kinds)
         app.state.db = db
