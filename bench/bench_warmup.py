@@ -96,19 +96,21 @@ _MODE = textwrap.dedent(
     import json, sys, time
     sys.path.insert(0, sys.argv[3])
     from bench.bench_warmup import run_mode
-    print(json.dumps(run_mode(int(sys.argv[1]), sys.argv[2] == "stop")))
+    print(json.dumps(run_mode(int(sys.argv[1]), sys.argv[2] == "stop", sys.argv[4].split(","))), flush=True)
+    import os
+    os._exit(0)  # a compile stopped in a thread is still running: do not wait for it
     """
 )
 
 
-def run_mode(processes: int, stop_early: bool) -> dict[str, Any]:
+def run_mode(processes: int, stop_early: bool, kinds: list[str]) -> dict[str, Any]:
     """One warm-up in this process (a fresh one, with NUMBA_CACHE_DIR set by the caller)."""
     from app.kernels import KernelWarmup
 
     lateness = _Lateness()
     t0 = time.monotonic()
     ready: dict[str, float] = {}
-    kernels = KernelWarmup(list(KINDS), processes=processes,
+    kernels = KernelWarmup(kinds, processes=processes,
                            on_ready=lambda kind: ready.setdefault(kind, time.monotonic() - t0))
     kernels.start()
     out: dict[str, Any] = {}
@@ -127,25 +129,27 @@ def run_mode(processes: int, stop_early: bool) -> dict[str, Any]:
     return out
 
 
-def part_modes() -> None:
+def part_modes(kinds: list[str]) -> None:
     root = str(Path(__file__).resolve().parents[1])
     print("\nserver warm-up on a fresh numba cache: thread in the server vs child processes")
-    print(f"{'mode':<12} " + " ".join(f"{k:>18}" for k in KINDS) + f" {'all s':>7} {'timer late p50/p99/max ms':>26}")
+    print(f"{'mode':<12} " + " ".join(f"{k:>18}" for k in kinds) + f" {'all s':>7} {'timer late p50/p99/max ms':>26}")
     for processes in MODES:
         with tempfile.TemporaryDirectory() as cache:
             env = {**os.environ, "NUMBA_CACHE_DIR": cache}
-            out = subprocess.run([sys.executable, "-c", _MODE, str(processes), "run", root], env=env,
+            out = subprocess.run([sys.executable, "-c", _MODE, str(processes), "run", root, ",".join(kinds)],
+                                 env=env,
                                  capture_output=True, text=True, check=True)
             r = json.loads(out.stdout.strip().splitlines()[-1])
         name = "thread" if processes == 0 else f"{processes} child" + ("ren" if processes > 1 else "")
         late = r["lateness"]
-        print(f"{name:<12} " + " ".join(f"{r['ready'].get(k, float('nan')):18.1f}" for k in KINDS)
+        print(f"{name:<12} " + " ".join(f"{r['ready'].get(k, float('nan')):18.1f}" for k in kinds)
               + f" {r['all_s']:7.1f} {late['p50_ms']:8.1f}/{late['p99_ms']:.1f}/{late['max_ms']:.1f}")
     print("\nstop() 2 s into the first compile (fresh cache)")
     for processes in (0, 2):
         with tempfile.TemporaryDirectory() as cache:
             env = {**os.environ, "NUMBA_CACHE_DIR": cache}
-            out = subprocess.run([sys.executable, "-c", _MODE, str(processes), "stop", root], env=env,
+            out = subprocess.run([sys.executable, "-c", _MODE, str(processes), "stop", root, ",".join(kinds)],
+                                 env=env,
                                  capture_output=True, text=True, check=True)
             r = json.loads(out.stdout.strip().splitlines()[-1])
         name = "thread" if processes == 0 else f"{processes} children"
@@ -156,12 +160,13 @@ def part_modes() -> None:
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--part", choices=("kinds", "modes", "all"), default="all")
+    p.add_argument("--kinds", default=",".join(KINDS), help="kinds of the modes part (comma-separated)")
     args = p.parse_args()
     print(f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f}")
     if args.part in ("kinds", "all"):
         part_kinds()
     if args.part in ("modes", "all"):
-        part_modes()
+        part_modes(args.kinds.split(","))
     return 0
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 from sqlalchemy import select
 
 from app.models import SampleOutputRow
@@ -34,3 +35,16 @@ def test_old_sample_outputs_dropped_per_stream(api: Api) -> None:
     assert sorted(seq for _, seq in kept) == [1, 2, 3]
     assert api.outputs("N1", "ema1")["t_s"][0] == s.t_s[1000]
     assert api.outputs("N1", "ema2")["t_s"][0] == s.t_s[0]
+
+
+def test_demo_sets_retention_unless_told_otherwise(monkeypatch: pytest.MonkeyPatch) -> None:
+    from app.cli import _demo_settings
+    from app.config import Settings
+
+    monkeypatch.delenv("FLEETHEALTH_LOG_RETENTION_S", raising=False)
+    monkeypatch.delenv("FLEETHEALTH_SAMPLE_OUTPUT_RETENTION_S", raising=False)
+    demo = _demo_settings(Settings())
+    assert demo.log_retention_s == 600.0 and demo.sample_output_retention_s == 900.0
+    monkeypatch.setenv("FLEETHEALTH_SAMPLE_OUTPUT_RETENTION_S", "7200")
+    demo = _demo_settings(Settings())
+    assert demo.sample_output_retention_s == 7200.0 and demo.log_retention_s == 600.0
