@@ -12,6 +12,7 @@ from typing import Any
 
 import httpx
 import pytest
+from fleethealth_client import FleetHealthClient
 
 from tests.e2e.conftest import LiveServer
 
@@ -65,8 +66,10 @@ def test_sigterm_during_cold_compile(tmp_path: Path) -> None:
         compiling = [kind for kind, k in body["kernels"].items() if k["status"] == "compiling"]
         assert compiling, body
         assert set(_processes_with_env(cache)) - {server.proc.pid}, "no compiling child found"
-        # The service answers while it compiles.
+        # The service answers while it compiles; the client reads the 503 body as it is.
         assert httpx.get(f"{server.url}/healthz", timeout=10.0).status_code == 200
+        with FleetHealthClient(server.url, server.api_key) as client:
+            assert client.readiness()["status"] == "not ready"
 
         t0 = time.monotonic()
         server.proc.send_signal(signal.SIGTERM)
