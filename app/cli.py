@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import errno
 import getpass
 import json
 import math
 import os
 import socket
+import subprocess
 import sys
-import threading
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -17,6 +18,10 @@ if TYPE_CHECKING:
     from app.config import Settings
 
 DEMO_OPERATOR = "demo"
+#: Settings of ``serve --demo`` unless given by their FLEETHEALTH_* variable: applied batches'
+#: raw payloads are dropped after ten minutes and per-sample outputs keep the last 15 minutes of
+#: each stream, so that the demo's database stays small (docs/operations.md, "The demo").
+DEMO_DEFAULTS: dict[str, object] = {"log_retention_s": 600.0, "sample_output_retention_s": 900.0}
 
 
 def _settings() -> Settings:
@@ -35,18 +40,29 @@ def cmd_migrate(args: argparse.Namespace) -> int:
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
+    s = _settings()
+    host = args.host or s.host
+    port = args.port or s.port
+    # Bind first: a busy port is one clear line before anything else happens.
+    try:
+        sock = _listen(host, port, s.socket_send_buffer_bytes)
+    except OSError as exc:
+        print(f"fleethealth: cannot listen on {host}:{port}: {exc.strerror or exc}"
+              + (" (is another fleethealth running? pick another port with --port or FLEETHEALTH_PORT)"
+                 if exc.errno == errno.EADDRINUSE else ""), file=sys.stderr)
+        return 1
     import uvicorn
 
     from app.main import create_app
     from app.migrate import upgrade
 
-    s = _settings()
-    host = args.host or s.host
-    port = args.port or s.port
+    _log_to_stderr(args.log_level)
+    if args.demo:
+        s = _demo_settings(s)
     if not args.no_migrate:
         upgrade(s.database_url)
     url = f"http://{host}:{port}"
-    stop = threading.Event()
+    feeder: subprocess.Popen[bytes] | None = None
     if args.demo:
         from app.auth.service import SCOPES, create_key, ensure_key
         from app.db import Database
@@ -54,30 +70,37 @@ def cmd_serve(args: argparse.Namespace) -> int:
         db = Database(s.database_url)
         with db.write() as session:
             if s.bootstrap_admin_key:
-                key = s.bootstrap_admin_key
-                ensure_key(session, s.bootstrap_operator, key, list(SCOPES), name="bootstrap")
+                key, operator = s.bootstrap_admin_key, s.bootstrap_operator
+                ensure_key(session, operator, key, list(SCOPES), name="bootstrap")
             else:
-                _, key = create_key(session, DEMO_OPERATOR, list(SCOPES), name="demo")
+                operator = DEMO_OPERATOR
+                _, key = create_key(session, operator, list(SCOPES), name="demo")
         db.dispose()
         print(f"\n  fleethealth demo: {url}\n  API docs:        {url}/docs\n  demo API key:    {key}\n"
+              f"  the demo fleet belongs to operator {operator!r}: keys of other operators do not see it;\n"
+              f"  more keys for it: fleethealth keys create --operator {operator} --scopes read\n"
               f"  try: curl -H 'Authorization: Bearer {key}' {url}/v1/fleet/health\n", flush=True)
-        threading.Thread(target=_demo_feeder, args=(url, key, stop), daemon=True).start()
+        feeder = _start_demo_feeder(url, key)
     else:
         print(f"fleethealth serving on {url} (API docs at {url}/docs)", flush=True)
+    access_log = args.access_log if args.access_log is not None else not args.demo
     config = uvicorn.Config(
         create_app(s),
         host=host,
         port=port,
         log_level=args.log_level,
+        access_log=access_log,
         ws_max_size=s.ws_max_frame_bytes,
         ws_ping_interval=s.ws_ping_interval_s,
         ws_ping_timeout=s.ws_ping_timeout_s,
         timeout_graceful_shutdown=math.ceil(s.shutdown_timeout_s),
     )
+    server = uvicorn.Server(config) if feeder is None else _demo_server(config, feeder)
     try:
-        uvicorn.Server(config).run(sockets=[_listen(host, port, s.socket_send_buffer_bytes)])
+        server.run(sockets=[sock])
     finally:
-        stop.set()
+        if feeder is not None:
+            _stop_demo_feeder(feeder)
     return 0
 
 
@@ -85,11 +108,13 @@ def cmd_worker(args: argparse.Namespace) -> int:
     """Apply pending batches in this process, next to any number of API and worker processes
     sharing one PostgreSQL (docs/scaling.md)."""
     import signal
+    import threading
 
     from app.db import Database
-    from app.main import warm_kernels
+    from app.kernels import KernelWarmup
     from app.processing import wakeups
     from app.processing.processor import Processor
+    from estimators.registry import ESTIMATORS
 
     s = _settings()
     db = Database(s.database_url)
@@ -98,11 +123,17 @@ def cmd_worker(args: argparse.Namespace) -> int:
         print("fleethealth worker needs PostgreSQL (FLEETHEALTH_DATABASE_URL); with SQLite the "
               "processor runs inside `fleethealth serve`", file=sys.stderr)
         return 2
-    if s.warm_kernels:
-        warm_kernels()
     chans = wakeups.channels(db)
+    # Streams are applied as soon as their kinds' kernels are ready (app/kernels.py).
+    kernels = KernelWarmup(list(ESTIMATORS), processes=s.warm_kernels_processes, enabled=s.warm_kernels)
     processor = Processor(db, s.model_copy(update={"processor_enabled": True}),
-                          applied_channel=chans.applied, origin=wakeups.ORIGIN)
+                          applied_channel=chans.applied, origin=wakeups.ORIGIN,
+                          ready_kinds=kernels.applicable_kinds)
+
+    def _kind_ready(_kind: str) -> None:
+        processor.recover()  # wake the streams that waited for this kind
+
+    kernels.on_ready = _kind_ready
     listener = wakeups.Listener(s.database_url, chans, on_logged=processor.notify_many,
                                 on_resync=processor.recover)
     stop = threading.Event()
@@ -111,6 +142,7 @@ def cmd_worker(args: argparse.Namespace) -> int:
     listener.start()
     listener.listening.wait(30)
     processor.start()
+    kernels.start()
     print(f"fleethealth worker {wakeups.ORIGIN} applying streams of {db.engine.url.render_as_string()}",
           flush=True)
     try:
@@ -119,10 +151,29 @@ def cmd_worker(args: argparse.Namespace) -> int:
                 print("the processor thread stopped", file=sys.stderr)
                 return 1
     finally:
+        kernels.stop()
         listener.stop()
         processor.stop(timeout=s.shutdown_timeout_s)
         db.dispose()
     return 0
+
+
+def _demo_settings(s: Settings) -> Settings:
+    """The demo's settings: those given, with retention defaults that keep its database small."""
+    demo = {name: value for name, value in DEMO_DEFAULTS.items() if f"FLEETHEALTH_{name}".upper() not in os.environ}
+    return s.model_copy(update=demo)
+
+
+def _log_to_stderr(level: str) -> None:
+    """The service's own messages (kernels ready, streams failed, the demo) on stderr."""
+    import logging
+
+    logger = logging.getLogger("fleethealth")
+    if not logger.handlers:
+        handler = logging.StreamHandler()
+        handler.setFormatter(logging.Formatter("%(levelname)s:     %(name)s: %(message)s"))
+        logger.addHandler(handler)
+    logger.setLevel(level.upper() if level.upper() in logging.getLevelNamesMapping() else logging.INFO)
 
 
 def _listen(host: str, port: int, send_buffer_bytes: int | None) -> socket.socket:
@@ -134,19 +185,48 @@ def _listen(host: str, port: int, send_buffer_bytes: int | None) -> socket.socke
     if send_buffer_bytes is not None:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, send_buffer_bytes)
     sock.bind((host, port))
+    # Listen at once: with SO_REUSEADDR a second process could still bind a port that is bound
+    # but not listening yet.
+    sock.listen(2048)
     sock.set_inheritable(True)
     return sock
 
 
-def _demo_feeder(url: str, key: str, stop: threading.Event) -> None:
-    try:
-        from fleethealth_tools.simulate import run_simulation
+def _start_demo_feeder(url: str, key: str) -> subprocess.Popen[bytes]:
+    """``fleethealth simulate`` in a child process: its plant simulations (and their first
+    numba compile) run beside the server rather than in its interpreter. It waits for the
+    server itself; every second aircraft's flight controls get surface faults and the taxi
+    drives wear out at different rates. Its stdout is the terminal's; it stops when the server
+    stops, or when its stdin closes (the server died)."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "app.cli", "simulate", "--url", url, "--flight-controls",
+         "--friction-drives", "--stop-on-stdin-eof"],
+        stdin=subprocess.PIPE,
+        env={**os.environ, "FLEETHEALTH_API_KEY": key},  # not on the command line (ps shows it)
+    )
 
-        # Waits for /readyz itself. Every second aircraft's flight controls get surface faults;
-        # the taxi drives wear out at different rates.
-        run_simulation(url, key, stop_event=stop, flight_controls=True, friction_drives=True)
-    except Exception as exc:  # the demo feeder must never take the server down
-        print(f"demo simulator stopped: {exc}", file=sys.stderr)
+
+def _demo_server(config: Any, feeder: subprocess.Popen[bytes]) -> Any:
+    """uvicorn's server, stopping the demo feeder first when it shuts down (uvicorn ends the
+    process by re-raising SIGTERM once shut down, so a ``finally`` after ``run`` may not run)."""
+    import uvicorn
+
+    class DemoServer(uvicorn.Server):
+        async def shutdown(self, sockets: Any = None) -> None:
+            _stop_demo_feeder(feeder)
+            await super().shutdown(sockets)
+
+    return DemoServer(config)
+
+
+def _stop_demo_feeder(feeder: subprocess.Popen[bytes]) -> None:
+    if feeder.poll() is None:
+        feeder.terminate()
+        try:
+            feeder.wait(5)
+        except subprocess.TimeoutExpired:
+            feeder.kill()
+            feeder.wait()
 
 
 def cmd_keys(args: argparse.Namespace) -> int:
@@ -292,6 +372,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--demo", action="store_true", help="also feed a simulated demo fleet")
     sp.add_argument("--no-migrate", action="store_true", help="do not apply migrations first")
     sp.add_argument("--log-level", default="info")
+    sp.add_argument("--access-log", action=argparse.BooleanOptionalAction, default=None,
+                    help="one line per request (default: on, off with --demo)")
     sp.set_defaults(func=cmd_serve)
 
     sp = sub.add_parser("worker", help="apply pending batches (PostgreSQL; any number of workers)")

@@ -54,7 +54,13 @@ class Settings(BaseSettings):
     # Deleted aircraft and actuators keep their data this long, then the processor's periodic
     # scan purges them (default 30 days).
     deleted_retention_s: float = Field(default=30 * 86_400.0, gt=0)
+    # Per-sample outputs kept per stream, in seconds of stream time before its last applied
+    # sample (None keeps them all; health windows, events and RUL are always kept).
+    sample_output_retention_s: float | None = Field(default=None, gt=0)
     warm_kernels: bool = True
+    # Child processes compiling estimator kinds at once into numba's cache at start-up; 0
+    # compiles inside the server (app/kernels.py, docs/operations.md "Start-up").
+    warm_kernels_processes: int = Field(default=2, ge=0)
     # WebSocket streaming (docs/api.md, "Streaming").
     ws_max_frame_bytes: int = Field(default=16 * 1024 * 1024, gt=0)
     ws_max_inflight: int = Field(default=16, gt=0)

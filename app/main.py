@@ -4,11 +4,11 @@ processor and (PostgreSQL) the notification listener."""
 from __future__ import annotations
 
 import logging
-import threading
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
+from fastapi.staticfiles import StaticFiles
 
 from app import __version__
 from app.alarms import router as alarms_router
@@ -22,6 +22,7 @@ from app.events import router as events_router
 from app.faults import router as faults_router
 from app.fleet import router as fleet_router
 from app.health import router as health_router
+from app.kernels import KernelWarmup
 from app.processing import wakeups
 from app.processing.processor import Processor
 from app.streams import router as streams_router
@@ -36,9 +37,9 @@ from estimators.registry import ESTIMATORS
 
 log = logging.getLogger("fleethealth")
 
-# At shutdown, how long to wait for a kernel warm-up still running (a first numba compile of
-# every kernel takes tens of seconds on a cold cache).
-WARM_JOIN_TIMEOUT_S = 60.0
+# At shutdown, how long to wait for the kernel warm-up (its compiling children are killed; a
+# load from numba's cache in progress ends within about a second).
+WARM_JOIN_TIMEOUT_S = 2.0
 
 DESCRIPTION = """\
 Health monitoring of aircraft actuators across a fleet: telemetry ingest per tail number,
@@ -51,12 +52,6 @@ space) stored nothing: retry after `Retry-After` seconds.
 """
 
 
-def warm_kernels() -> None:
-    """Compile (or load from numba's cache) every estimator kernel once."""
-    for kind in ESTIMATORS.values():
-        kind.warm_up()
-
-
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or get_settings()
 
@@ -65,7 +60,19 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         db = Database(settings.database_url, sqlite_synchronous=settings.sqlite_synchronous)
         # PostgreSQL: wake-ups, applied marks and fleet events also cross processes (workers).
         chans = wakeups.channels(db) if not db.is_sqlite and settings.pg_notify == "on" else None
-        processor = Processor(db, settings, applied_channel=chans.applied if chans else None, origin=wakeups.ORIGIN)
+        kernels = KernelWarmup(
+            list(ESTIMATORS),
+            processes=settings.warm_kernels_processes,
+            # A process that never applies (ingest only) needs no kernels.
+            enabled=settings.warm_kernels and settings.processor_enabled,
+        )
+        processor = Processor(
+            db,
+            settings,
+            applied_channel=chans.applied if chans else None,
+            origin=wakeups.ORIGIN,
+            ready_kinds=kernels.applicable_kinds,
+        )
         writer = LogWriter(
             db,
             max_group=settings.log_writer_max_group,
@@ -92,29 +99,29 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         deliverer = Deliverer(db, settings) if settings.webhooks_enabled else None
         app.state.deliverer = deliverer
         app.state.log_writer = writer
-        app.state.kernels_warm = threading.Event()
+        app.state.kernels = kernels
+        app.state.kernels_warm = kernels.done
         if settings.bootstrap_admin_key:
             with db.write() as s:
                 ensure_key(s, settings.bootstrap_operator, settings.bootstrap_admin_key,
                            list(SCOPES), name="bootstrap")
 
-        def _warm_then_process() -> None:
-            # Batches are accepted (and durable) while the kernels compile; the processor starts
-            # once they are ready so that no apply pays a compile.
-            if settings.warm_kernels:
-                warm_kernels()
-            app.state.kernels_warm.set()
+        # Batches are accepted (and durable) while the kernels compile; the processor applies a
+        # stream once the kinds of all its estimators are ready, so no apply pays a compile.
+        def _kind_ready(kind: str) -> None:
             if settings.processor_enabled:
-                processor.start()
+                processor.recover()  # wake the streams that waited for this kind
 
-        warm = threading.Thread(target=_warm_then_process, name="fleethealth-warm", daemon=True)
-        warm.start()
+        kernels.on_ready = _kind_ready
+        if settings.processor_enabled:
+            processor.start()
+        kernels.start()
         if deliverer is not None:
             deliverer.start()
         try:
             yield
         finally:
-            warm.join(timeout=WARM_JOIN_TIMEOUT_S)
+            kernels.stop(timeout_s=WARM_JOIN_TIMEOUT_S)
             writer.stop()
             if listener is not None:
                 listener.stop()
@@ -128,6 +135,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         version=__version__,
         description=DESCRIPTION,
         lifespan=lifespan,
+        # /docs and /redoc are the system router's, with local assets (no CDN).
+        docs_url=None,
+        redoc_url=None,
+    )
+    app.mount(
+        system_router.DOCS_ASSETS_URL,
+        StaticFiles(directory=system_router.DOCS_ASSETS_DIR),
+        name="docs-assets",
     )
     install_handlers(app)
     app.openapi = lambda: document_errors(FastAPI.openapi(app))  # type: ignore[method-assign]

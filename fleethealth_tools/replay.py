@@ -33,6 +33,8 @@ from typing import Any
 import numpy as np
 from fleethealth_client import BATCH_FORMATS, ApiError, FleetHealthClient
 
+from fleethealth_tools.readiness import wait_for_server
+
 DEFAULT_URL = "http://127.0.0.1:8000"
 DEFAULT_TAIL = "FLEA-STAND"
 ACTUATOR_KIND = "ema_voltage"
@@ -296,7 +298,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="wait until the server has applied every batch and print each actuator's health",
     )
     parser.add_argument(
-        "--wait-timeout-s", type=float, default=120.0, help="limit for --wait (default 120)"
+        "--wait-timeout-s",
+        type=float,
+        default=120.0,
+        help="limit for --wait once the server's kernels are ready (default 120); the wait for "
+        "the kernels themselves has no limit",
     )
 
 
@@ -337,6 +343,12 @@ def run(args: argparse.Namespace) -> int:
             f"{elapsed:.2f} s ({rate:,.0f} samples/s), {result.errors} errors"
         )
         if args.wait and result.last_seq:
+            # A fresh server may still compile the kernels these streams need (minutes on a new
+            # installation): wait for them however long it takes, then for the applies.
+            kinds: set[str] = set()
+            for actuator_id in result.last_seq:
+                kinds.update(client.health(args.tail, actuator_id).get("estimators") or {})
+            wait_for_server(client, kinds=kinds or None, prefix="replay: ")
             for actuator_id, seq in result.last_seq.items():
                 try:
                     health = client.wait_applied(

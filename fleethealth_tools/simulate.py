@@ -37,6 +37,8 @@ from fleethealth_client import (
     StreamRefused,
 )
 
+from fleethealth_tools.readiness import KernelProgress, wait_for_server
+
 DEFAULT_URL = "http://127.0.0.1:8000"
 ACTUATOR_KIND = "ema_voltage"
 FLIGHT_KIND = "flight_controls"
@@ -323,25 +325,6 @@ def demo_layout(
             yield tail, actuator_id, load_lbs, pace
 
 
-def wait_until_ready(
-    client: FleetHealthClient, timeout_s: float, stop_event: threading.Event | None
-) -> bool:
-    """Poll ``/readyz`` until it answers 2xx; False if ``timeout_s`` passes or stop is asked."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if stop_event is not None and stop_event.is_set():
-            return False
-        # Any failure (refused, 503, timeout) means "not yet".
-        with contextlib.suppress(Exception):
-            client.readyz()
-            return True
-        if stop_event is not None:
-            stop_event.wait(0.25)
-        else:
-            time.sleep(0.25)
-    return False
-
-
 TRANSPORTS = ("rest", "ws")
 #: Limit on one call into the WebSocket event loop (open, send), seconds.
 WS_CALL_TIMEOUT_S = 120.0
@@ -405,7 +388,7 @@ def run_simulation(
     seed: int = 0,
     tail_prefix: str = "FH",
     degrade_over_s: float | None = None,
-    ready_timeout_s: float = 60.0,
+    ready_timeout_s: float | None = None,
     stop_event: threading.Event | None = None,
     log: Log = print,
     transport: str = "rest",
@@ -429,7 +412,9 @@ def run_simulation(
         tail_prefix: tails are ``<prefix>-001``, ``<prefix>-002``, ...
         degrade_over_s: stream seconds over which the fastest degrading actuator goes from
             healthy to full friction; default 300 s in real time, else ``duration_s`` (or 300 s).
-        ready_timeout_s: how long to wait for the server's ``/readyz``.
+        ready_timeout_s: how long to wait for the server to accept telemetry; None waits
+            however long it takes (a progress line every few seconds). Batches are sent as soon
+            as it does; while kernels still compile, progress lines follow.
         stop_event: set it to stop after the current batch.
         log: receives one line per notable event.
         flight_controls: also give every aircraft a ``flight-controls`` unit (kind
@@ -464,10 +449,20 @@ def run_simulation(
     simulate = _load_simulator()
 
     with FleetHealthClient(base_url, api_key, timeout=30.0) as client:
-        if not wait_until_ready(client, ready_timeout_s, stop_event):
-            log(f"simulate: server at {base_url} not ready, giving up")
-            summary.errors += 1
+        ready = wait_for_server(
+            client, timeout_s=ready_timeout_s, stop_event=stop_event, log=log, prefix="simulate: "
+        )
+        if ready is None:
+            if stop_event is None or not stop_event.is_set():
+                log(f"simulate: server at {base_url} not ready, giving up")
+                summary.errors += 1
             return summary
+        kinds = {"fakf"}
+        if flight_controls:
+            kinds.add("stmmae")
+        if friction_drives:
+            kinds.add("deterioration_ekf")
+        progress = KernelProgress(client, kinds, log=log, prefix="simulate: ")
 
         now_s = time.time()
         streams: list[_Stream] = []
@@ -611,6 +606,7 @@ def run_simulation(
                 summary.batches_sent += 1
                 summary.samples_sent += len(t_s)
             batch_index += 1
+            progress.check()
             summary.stream_seconds = batch_index * samples_per_batch / sample_rate_hz
             if batch_index % max(1, round(60.0 / batch_seconds)) == 0:
                 log(
@@ -694,8 +690,36 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
+        "--stop-on-stdin-eof",
+        action="store_true",
+        help="stop when standard input closes (for a process that runs the simulator as its "
+        "child, as `fleethealth serve --demo` does)",
+    )
+    parser.add_argument(
+        "--ready-timeout-s",
+        type=float,
+        default=None,
+        help="give up if the server does not accept telemetry within this time "
+        "(default: wait however long it takes, with a progress line)",
+    )
+    parser.add_argument(
         "--tail-prefix", default="FH", help="tails are PREFIX-001, PREFIX-002, ... (default FH)"
     )
+
+
+#: After standard input closes, seconds left to stop after the current batch before exiting.
+STDIN_EOF_GRACE_S = 2.0
+
+
+def _stop_on_stdin_eof(stop_event: threading.Event) -> None:
+    """Stop once standard input closes (raw reads: no buffered reader's lock): after the
+    current batch, or at once if that batch takes longer than :data:`STDIN_EOF_GRACE_S`."""
+    with contextlib.suppress(OSError):
+        while os.read(0, 4096):
+            pass
+    stop_event.set()
+    time.sleep(STDIN_EOF_GRACE_S)
+    os._exit(0)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -704,6 +728,8 @@ def run(args: argparse.Namespace) -> int:
         print("simulate: give --api-key or set FLEETHEALTH_API_KEY")
         return 2
     stop_event = threading.Event()
+    if args.stop_on_stdin_eof:
+        threading.Thread(target=_stop_on_stdin_eof, args=(stop_event,), daemon=True).start()
     try:
         summary = run_simulation(
             args.url,
@@ -723,6 +749,7 @@ def run(args: argparse.Namespace) -> int:
             flight_controls=args.flight_controls,
             faults=args.faults,
             friction_drives=args.friction_drives,
+            ready_timeout_s=args.ready_timeout_s,
         )
     except KeyboardInterrupt:
         stop_event.set()

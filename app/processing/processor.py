@@ -36,7 +36,7 @@ import queue
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -81,6 +81,8 @@ NOTIFY_MAX_BYTES = 7000
 STREAM_META_CACHE = 4096
 # Applied marks remembered for ?wait= without a read.
 APPLIED_MARKS_CACHE = 4096
+# Per-sample output retention runs at most this often (it scans the table).
+SAMPLE_OUTPUT_PRUNE_EVERY_S = 60.0
 
 
 @dataclass(frozen=True)
@@ -103,6 +105,7 @@ class Processor:
         *,
         applied_channel: str | None = None,
         origin: str = "",
+        ready_kinds: Callable[[], frozenset[str] | None] = lambda: None,
     ) -> None:
         self.db = db
         # Batches this process logged, decoded (the log writer fills it when this process applies).
@@ -112,6 +115,9 @@ class Processor:
         # PostgreSQL: the channel on which applies are announced to other processes.
         self.applied_channel = applied_channel
         self.origin = origin
+        # Estimator kinds whose kernels are ready (None: all); other streams wait, and are
+        # woken by recover() when their kind becomes ready.
+        self.ready_kinds = ready_kinds
         self._meta: OrderedDict[int, StreamMeta] = OrderedDict()
         self._queue: queue.SimpleQueue[int | None] = queue.SimpleQueue()
         # Latest applied marks seen here, so that a ?wait= on a batch already applied needs no
@@ -260,6 +266,7 @@ class Processor:
                                 store_outputs=self.settings.store_sample_outputs,
                                 is_sqlite=self.db.is_sqlite,
                                 recent=self.recent,
+                                ready_kinds=self.ready_kinds(),
                             )
                     except Exception as exc:  # this stream's savepoint is rolled back
                         errors.append((pk, exc))
@@ -438,6 +445,7 @@ class Processor:
     # ------------------------------------------------------------------ loop
     def _run(self) -> None:
         next_scan = 0.0
+        next_prune = 0.0
         while not self._stop.is_set():
             now = time.monotonic()
             if now >= next_scan:
@@ -448,6 +456,10 @@ class Processor:
                             repository.drop_applied_payloads(s, self.settings.log_retention_s)
                     with self.db.write() as s:
                         fleet.purge_deleted(s, self.settings.deleted_retention_s)
+                    if self.settings.sample_output_retention_s is not None and now >= next_prune:
+                        next_prune = now + SAMPLE_OUTPUT_PRUNE_EVERY_S
+                        with self.db.write() as s:
+                            repository.drop_old_sample_outputs(s, self.settings.sample_output_retention_s)
                 except Exception:
                     log.exception("periodic scan failed")
                 next_scan = now + self.settings.processor_scan_interval_s

@@ -218,6 +218,18 @@ def drop_applied_payloads(session: Session, older_than_s: float) -> int:
     return int(getattr(res, "rowcount", 0) or 0)
 
 
+def drop_old_sample_outputs(session: Session, keep_s: float) -> int:
+    """Retention: forget the per-sample outputs that end more than ``keep_s`` seconds of stream
+    time before the stream's last applied sample (health windows, events and RUL are kept)."""
+    newest = (
+        select(Stream.last_applied_t_s)
+        .where(Stream.actuator_pk == SampleOutputRow.actuator_pk)
+        .scalar_subquery()
+    )
+    res = session.execute(delete(SampleOutputRow).where(SampleOutputRow.t_last_s < newest - keep_s))
+    return int(getattr(res, "rowcount", 0) or 0)
+
+
 def stream_owner(session: Session, actuator_pk: int) -> tuple[int, str, str]:
     """(operator id, tail, actuator id) of a stream."""
     row = session.execute(

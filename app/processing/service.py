@@ -131,12 +131,14 @@ def apply_pending(
     is_sqlite: bool,
     max_batches: int = MAX_BATCHES_PER_QUERY,
     recent: RecentBatches | None = None,
+    ready_kinds: frozenset[str] | None = None,
 ) -> ApplyResult | None:
     """Apply the next pending batches of one stream inside the caller's transaction: claim,
     load, run the estimators (pure), store outputs, states and the applied mark together.
 
-    Returns None when another worker holds the stream, the stream is failed, or nothing is
-    pending.
+    Returns None when another worker holds the stream, the stream is failed, nothing is
+    pending, or an estimator of the stream is of a kind outside ``ready_kinds`` (its kernels
+    are still compiling; None means every kind is ready).
 
     Raises:
         StateUnreadable: an estimator's state has a version this build cannot read (nothing
@@ -145,10 +147,12 @@ def apply_pending(
     stream = repository.claim(session, actuator_pk, is_sqlite=is_sqlite)
     if stream is None or stream.failure is not None:
         return None
+    est_rows = repository.estimators(session, actuator_pk)
+    if ready_kinds is not None and any(er.estimator not in ready_kinds for er in est_rows):
+        return None
     pending, more = repository.pending_batches(session, stream, max_samples=max_samples, max_batches=max_batches)
     if not pending:
         return None
-    est_rows = repository.estimators(session, actuator_pk)
     pending = _at_baseline_boundary(stream, est_rows, pending)
     runners = [
         make_runner(er.estimator, er.config, er.state, er.status, er.reasons, er.diagnosis_t_s, er.diagnosis)

@@ -1,11 +1,19 @@
-"""Liveness and readiness (no authentication) and Prometheus metrics (``metrics_access``)."""
+"""Liveness and readiness (no authentication), Prometheus metrics (``metrics_access``) and the
+API docs pages."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Annotated
 
+import fastapi_offline
 from fastapi import APIRouter, Depends, Request
-from fastapi.responses import Response
+from fastapi.openapi.docs import (
+    get_redoc_html,
+    get_swagger_ui_html,
+    get_swagger_ui_oauth2_redirect_html,
+)
+from fastapi.responses import HTMLResponse, Response
 from fastapi.security import HTTPAuthorizationCredentials
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
@@ -30,6 +38,7 @@ _READY_SCHEMA = {
     "properties": {
         "status": {"type": "string"},
         "checks": {"type": "object", "additionalProperties": {"type": "string"}},
+        "kernels": {"type": "object", "additionalProperties": {"type": "object"}},
         "error": {"type": "string"},
         "detail": {"type": "string"},
     },
@@ -49,7 +58,15 @@ _READY_SCHEMA = {
 def readyz(request: Request) -> Response:
     """The database answers, its schema is at the head migration, it can store (no write
     failed for lack of space or connection since the last one that committed; a SQLite file
-    system has ``storage_min_free_bytes`` free) and the kernels are warm."""
+    system has ``storage_min_free_bytes`` free) and every estimator kind's kernels are ready.
+
+    ``checks`` holds ``database``, ``schema``, ``storage`` and ``kernels`` (``ok`` or what is
+    missing); ``kernels`` holds each estimator kind's warm-up: ``{"status": "waiting" |
+    "compiling" | "loading" | "ready" | "failed", "seconds": ..., "error": ...}``. While kernels
+    compile the service already accepts telemetry (durable), and each kind's streams are applied
+    as soon as that kind is ready: ``database``, ``schema`` and ``storage`` at ``ok`` mean
+    batches can be sent.
+    """
     state = request.app.state
     checks: dict[str, str] = {}
     try:
@@ -62,16 +79,21 @@ def readyz(request: Request) -> Response:
         checks["database"] = "ok"
         checks["schema"] = "ok" if rev == head else f"at {rev}, head is {head}"
     checks["storage"] = _storage_check(state.db, state.settings)
-    checks["kernels"] = "ok" if state.kernels_warm.is_set() else "warming"
+    kernels = state.kernels.snapshot()
+    waiting = sorted(kind for kind, k in kernels.items() if k["status"] != "ready")
+    checks["kernels"] = "ok" if not waiting else "not ready: " + ", ".join(
+        f"{kind} {kernels[kind]['status']}" for kind in waiting
+    )
     failing = {k: v for k, v in checks.items() if v != "ok"}
     if not failing:
-        return json_response({"status": "ok", "checks": checks})
+        return json_response({"status": "ok", "checks": checks, "kernels": kernels})
     return json_response(
         {
             "error": "NotReady",
             "detail": "; ".join(f"{k}: {v}" for k, v in failing.items()),
             "status": "not ready",
             "checks": checks,
+            "kernels": kernels,
         },
         status_code=503,
         headers={"Retry-After": str(state.settings.storage_retry_after_s)},
@@ -115,3 +137,61 @@ def metrics() -> Response:
     only, never per operator; access per ``FLEETHEALTH_METRICS_ACCESS`` (default: a key with
     the read scope)."""
     return Response(generate_latest(), media_type=CONTENT_TYPE_LATEST)
+
+
+# ----------------------------------------------------------------------------------- API docs
+#: The Swagger UI and ReDoc assets shipped by the fastapi-offline package, served by the app at
+#: DOCS_ASSETS_URL (create_app mounts them): /docs and /redoc work with no internet.
+DOCS_ASSETS_DIR = Path(fastapi_offline.__file__).parent / "static"
+DOCS_ASSETS_URL = "/docs/assets"
+OAUTH2_REDIRECT_URL = "/docs/oauth2-redirect"
+#: The browser loads nothing from another host: ReDoc's bundle shows a vendor logo from its
+#: CDN, which this blocks (the image is then left out). Inline scripts and styles are the
+#: pages' own; ReDoc's search runs in a blob: worker.
+DOCS_CSP = (
+    "default-src 'self'; script-src 'self' 'unsafe-inline'; style-src 'self' 'unsafe-inline'; "
+    "img-src 'self' data:; font-src 'self' data:; worker-src 'self' blob:; connect-src 'self'"
+)
+
+
+def _docs_page(page: HTMLResponse) -> HTMLResponse:
+    page.headers["Content-Security-Policy"] = DOCS_CSP
+    return page
+
+
+@router.get("/docs", include_in_schema=False)
+def swagger_ui(request: Request) -> HTMLResponse:
+    """Swagger UI over /openapi.json, with local assets."""
+    root = request.scope.get("root_path", "")
+    return _docs_page(
+        get_swagger_ui_html(
+            openapi_url=f"{root}{request.app.openapi_url}",
+            title=f"{request.app.title} - Swagger UI",
+            oauth2_redirect_url=f"{root}{OAUTH2_REDIRECT_URL}",
+            swagger_js_url=f"{root}{DOCS_ASSETS_URL}/swagger-ui-bundle.js",
+            swagger_css_url=f"{root}{DOCS_ASSETS_URL}/swagger-ui.css",
+            swagger_favicon_url=f"{root}{DOCS_ASSETS_URL}/favicon.png",
+            # No validator badge: it would load an image from the validator's host.
+            swagger_ui_parameters={"validatorUrl": None},
+        )
+    )
+
+
+@router.get(OAUTH2_REDIRECT_URL, include_in_schema=False)
+def swagger_ui_redirect() -> HTMLResponse:
+    return _docs_page(get_swagger_ui_oauth2_redirect_html())
+
+
+@router.get("/redoc", include_in_schema=False)
+def redoc(request: Request) -> HTMLResponse:
+    """ReDoc over /openapi.json, with local assets and no web fonts."""
+    root = request.scope.get("root_path", "")
+    return _docs_page(
+        get_redoc_html(
+            openapi_url=f"{root}{request.app.openapi_url}",
+            title=f"{request.app.title} - ReDoc",
+            redoc_js_url=f"{root}{DOCS_ASSETS_URL}/redoc.standalone.js",
+            redoc_favicon_url=f"{root}{DOCS_ASSETS_URL}/favicon.png",
+            with_google_fonts=False,
+        )
+    )

@@ -39,18 +39,8 @@ class LiveServer:
     def start(self, timeout_s: float = 300.0) -> None:
         # Bounded but generous: with a cold numba cache the first server compiles every kernel
         # before /readyz answers, which takes minutes on a busy two-core machine.
-        env = {
-            **os.environ,
-            "FLEETHEALTH_DATABASE_URL": self.db_url,
-            "FLEETHEALTH_BOOTSTRAP_ADMIN_KEY": self.api_key,
-            "FLEETHEALTH_PROCESSOR_SCAN_INTERVAL_S": "0.2",
-            **self.extra_env,
-        }
-        log = open(self.log_path, "ab")  # noqa: SIM115 (closed with the process)
-        self.proc = subprocess.Popen(
-            [FLEETHEALTH, "serve", "--host", "127.0.0.1", "--port", str(self.port), "--log-level", "warning"],
-            env=env, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT,
-        )
+        self.launch()
+        assert self.proc is not None
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             if self.proc.poll() is not None:
@@ -61,6 +51,22 @@ class LiveServer:
             time.sleep(0.2)
         self.stop()
         raise RuntimeError(f"server not ready within {timeout_s} s; see {self.log_path}")
+
+    def launch(self, args: list[str] | None = None) -> None:
+        """Start the process without waiting for it (``args`` replace ``--log-level warning``)."""
+        env = {
+            **os.environ,
+            "FLEETHEALTH_DATABASE_URL": self.db_url,
+            "FLEETHEALTH_BOOTSTRAP_ADMIN_KEY": self.api_key,
+            "FLEETHEALTH_PROCESSOR_SCAN_INTERVAL_S": "0.2",
+            **self.extra_env,
+        }
+        log = open(self.log_path, "ab")  # noqa: SIM115 (closed with the process)
+        self.proc = subprocess.Popen(
+            [FLEETHEALTH, "serve", "--host", "127.0.0.1", "--port", str(self.port),
+             *(args if args is not None else ["--log-level", "warning"])],
+            env=env, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT,
+        )
 
     def kill(self) -> None:
         """SIGKILL: no shutdown handler runs."""

@@ -241,7 +241,8 @@ class FleetHealthClient:
                 if last:
                     raise
             else:
-                if last or not retry.should_retry_status(response.status_code):
+                status = response.status_code
+                if last or status in request.ok_statuses or not retry.should_retry_status(status):
                     return self._core.parse(request, response)
                 retry_after = response.headers.get("retry-after")
             time.sleep(retry.delay_s(attempt, retry_after))
@@ -254,6 +255,11 @@ class FleetHealthClient:
 
     def readyz(self) -> JsonObject:
         return self._send(_Request("GET", "/readyz"))
+
+    def readiness(self) -> JsonObject:
+        """The ``/readyz`` body whether ready (200) or not yet (503), at once (no retry): its
+        ``checks`` say whether telemetry is accepted, ``kernels`` how each kind's warm-up stands."""
+        return self._send(_Request("GET", "/readyz", ok_statuses=(200, 503)))
 
     # -- fleet --------------------------------------------------------------------------------
 
@@ -455,7 +461,8 @@ class AsyncFleetHealthClient:
                 if last:
                     raise
             else:
-                if last or not retry.should_retry_status(response.status_code):
+                status = response.status_code
+                if last or status in request.ok_statuses or not retry.should_retry_status(status):
                     return self._core.parse(request, response)
                 retry_after = response.headers.get("retry-after")
             await asyncio.sleep(retry.delay_s(attempt, retry_after))
@@ -466,6 +473,9 @@ class AsyncFleetHealthClient:
 
     async def readyz(self) -> JsonObject:
         return await self._send(_Request("GET", "/readyz"))
+
+    async def readiness(self) -> JsonObject:
+        return await self._send(_Request("GET", "/readyz", ok_statuses=(200, 503)))
 
     async def create_aircraft(
         self, tail: str, description: str | None = None, exist_ok: bool = True
