@@ -28,6 +28,7 @@ PROGNOSIS_Q = [0.0, 0.0, 0.0, 1e-13]
 SEED: dict[str, Any] = {
     "alpha0": 10.0,
     "input_model": "hold",
+    "plant_calibration": False,
     "noise_adaptation": False,
     "gate_sigma": None,
     "m_walk_rel": 0.0,

@@ -45,6 +45,7 @@ CAP_S = 2500.0  # longest simulated life; longer draws are redrawn (counted in t
 SEED: dict[str, Any] = {
     "alpha0": 10.0,
     "input_model": "hold",
+    "plant_calibration": False,
     "noise_adaptation": False,
     "gate_sigma": None,
     "m_walk_rel": 0.0,

@@ -31,7 +31,9 @@ def drive_of(seed: int, **changes: Any) -> fs.Drive:
 
 
 def run(raw: dict[str, Any], t: np.ndarray, ch: dict[str, np.ndarray]) -> tuple[Any, Any]:
-    config = de.parse_config({"rul_every_s": None, **raw})
+    """The defaults with ``raw``; the plant calibration off unless asked for (each test here
+    isolates one mechanism)."""
+    config = de.parse_config({"rul_every_s": None, "plant_calibration": False, **raw})
     return de.step(config, de.initial_state(config), Batch(t_s=t, channels=ch))
 
 
