@@ -129,14 +129,17 @@ def sampled_map(theta: FloatArray, plant: FloatArray, dt: float) -> FloatArray:
     return np.vstack([adp.T, bdp[None, :]])
 
 
-def _sums(st: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+def _sums(
+    st: FloatArray,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
     r = kern.PCAL_REG
     wz = st[kern.ST_PCAL_WZ : kern.ST_PCAL_WZ + r * r].reshape(r, r)
     wy = st[kern.ST_PCAL_WY : kern.ST_PCAL_WY + 2 * r].reshape(r, 2)
     zz = st[kern.ST_PCAL_ZZ : kern.ST_PCAL_ZZ + r * r].reshape(r, r)
     zy = st[kern.ST_PCAL_ZY : kern.ST_PCAL_ZY + 2 * r].reshape(r, 2)
     yy = st[kern.ST_PCAL_YY : kern.ST_PCAL_YY + 4].reshape(2, 2)
-    return wz, wy, zz, zy, yy
+    ww = st[kern.ST_PCAL_WW : kern.ST_PCAL_WW + r * r].reshape(r, r)
+    return wz, wy, zz, zy, yy, ww
 
 
 def fit_plant(st: FloatArray, plant: FloatArray, alpha_guess: float) -> PlantFit:
@@ -154,10 +157,14 @@ def fit_plant(st: FloatArray, plant: FloatArray, alpha_guess: float) -> PlantFit
     if rows < MIN_ROWS:
         return PlantFit(False, f"{rows} intervals without a current change (need {MIN_ROWS})", rows)
     dt = float(st[kern.ST_PCAL_DT]) / rows
-    wz, wy, zz, zy, yy = _sums(st)
+    wz, wy, zz, zy, yy, ww = _sums(st)
     try:
         theta_reg = np.linalg.solve(wz, wy)
-        info = np.linalg.inv(np.linalg.inv(zz)[:3, :3])
+        # covariance of the IV estimate per unit residual variance: (W'Z)^-1 W'W (Z'W)^-1;
+        # the information on the map at the centre is the inverse of its first 3x3 block
+        wz_inv = np.linalg.inv(wz)
+        iv_cov = wz_inv @ ww @ wz_inv.T
+        info = np.linalg.inv(0.5 * (iv_cov[:3, :3] + iv_cov[:3, :3].T))
         chol = np.linalg.cholesky(0.5 * (info + info.T))
     except np.linalg.LinAlgError:
         return PlantFit(False, "calibration regression singular (no excitation)", rows)

@@ -239,8 +239,8 @@ class DekfConfig(EstimatorConfigModel):
     covariance_scaling: bool = Field(
         default=True,
         description="scale the reported bands (the *_3sigma outputs, the Dn bounds, the "
-        "diagnosis) by the running mean of NIS / dof when it is above 1: innovations larger than "
-        "their predicted covariance mean a covariance too small by that factor",
+        "diagnosis) by NIS / dof of the last health window when it is above 1: innovations "
+        "larger than their predicted covariance mean a covariance too small by that factor",
     )
     alpha_max_rel: NonNegativeFloat = Field(
         default=0.1,
@@ -451,6 +451,7 @@ def _state_kernel_config(config: DekfConfig, vec: FloatArray) -> FloatArray:
     cfg[kern.CFG_INV_J1] = 1.0 / cal[2]
     cfg[kern.CFG_INV_J2] = 1.0 / cal[3]
     cfg[kern.CFG_SKEW] = cal[4]
+    cfg[kern.CFG_ALPHA_FLOOR] = float(vec[kern.ST_PCAL_ALPHA_REL])
     return cfg
 
 
@@ -471,20 +472,31 @@ def _apply_calibration(
     vec[kern.ST_PCAL_OK] = 1.0 if fit.applied else 0.0
     detail = fit.as_dict()
     if fit.applied:
+        vec[kern.ST_PCAL_ALPHA_REL] = fit.alpha_rel_std
         vec[kern.ST_PLANT : kern.ST_PLANT + 5] = (
             fit.b1, config.plant.b2_nm_s, fit.j1, fit.j2, fit.skew_s
         )  # fmt: skip
-        # the filter's own relative wear since the centre of the segment carries the fit on
-        ratio = x2 / a_mid if math.isfinite(a_mid) and a_mid > 0.0 and x2 > 0.0 else 1.0
-        alpha_now = fit.alpha * ratio
+        # the fit is alpha at the segment centre; the wear over the second half, unknown (the
+        # filter's m-hat was built with the wrong plant), enters as variance at the prior m0
+        wear2 = abs(config.m0) * max(float(vec[kern.ST_PCAL_INT] - vec[kern.ST_PCAL_INT_MID]), 0.0)
+        alpha_now = fit.alpha
         m_hat = max(float(vec[kern.ST_X + 3]), 0.0)
         p = kern.ST_P
         for i in (2, 3, 5, 6, 8):  # alpha and m rows/columns: p02 p03 p12 p13 p23
             vec[p + i] = 0.0
-        vec[p + 7] = (fit.alpha_rel_std * alpha_now) ** 2
-        vec[p + 9] = max(float(vec[p + 9]), config.p0_diag[3])
+        vec[p + 7] = (fit.alpha_rel_std**2 + wear2 * wear2) * alpha_now * alpha_now
+        # m-hat restarts from its prior: the wear it learnt was that of the wrong plant
+        vec[kern.ST_X + 3] = config.m0
+        vec[p + 9] = config.p0_diag[3]
+        # the innovation record of the wrong plant, and the speed process noise that covariance
+        # matching learnt from it, say nothing about the calibrated plant
+        vec[kern.ST_NIS_RATIO] = math.nan
+        vec[kern.ST_NIS_N] = 0.0
+        vec[kern.ST_QW] = 0.0
+        vec[kern.ST_QW + 1] = 0.0
+        vec[kern.ST_N_ADAPT] = 0.0
         if config.alpha0 is None:
-            lf = min(m_hat * float(vec[kern.ST_PCAL_INT_MID]), kern.CALIB_MAX_LOG)
+            lf = min(m_hat * float(vec[kern.ST_PCAL_INT_MID]), kern.CALIB_MAX_LOG)  # eq. 7
             vec[kern.ST_ALPHA0] = fit.alpha * math.exp(lf)
             vec[kern.ST_A0_VAR] = fit.alpha_rel_std**2 + (
                 float(vec[kern.ST_PCAL_INT_MID]) ** 2 * float(vec[p + 9])
@@ -1088,6 +1100,9 @@ def prognosis_at(config: DekfConfig, row: FloatArray, vec: FloatArray) -> RulEst
         return None
     c = config.bound_sigma
     cov_scale = float(row[kern.RS_COV_SCALE]) if config.covariance_scaling else 1.0
+    # the calibrated alpha's own uncertainty is a floor no later data reduce (a plant error)
+    floor = float(vec[kern.ST_PCAL_ALPHA_REL]) if t_s >= vec[kern.ST_PCAL_T] else 0.0
+    cov[2, 2] += (floor * x[2]) ** 2
     s_alpha = math.sqrt(max(float(cov[2, 2]) * cov_scale, 0.0))
     dn = 1.0 - x[2] / alpha0
     if dn >= config.rul_failure_dn:
@@ -1189,8 +1204,8 @@ def prognosis_at(config: DekfConfig, row: FloatArray, vec: FloatArray) -> RulEst
 
 
 def covariance_scale(config: DekfConfig, vec: FloatArray) -> float:
-    """The factor on the filter's covariance in the reported bands: max(1, running NIS / dof)
-    with ``covariance_scaling``, else 1."""
+    """The factor on the filter's covariance in the reported bands: max(1, NIS / dof of the
+    last health window) with ``covariance_scaling``, else 1."""
     ratio = float(vec[kern.ST_NIS_RATIO])
     if not config.covariance_scaling or not math.isfinite(ratio):
         return 1.0

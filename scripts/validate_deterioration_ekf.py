@@ -46,6 +46,7 @@ SEED: dict[str, Any] = {
     "alpha0": 10.0,
     "input_model": "hold",
     "plant_calibration": False,
+    "covariance_scaling": False,
     "noise_adaptation": False,
     "gate_sigma": None,
     "m_walk_rel": 0.0,

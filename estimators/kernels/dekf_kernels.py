@@ -75,7 +75,8 @@ CFG_SKEW = 50  # time offset of the w1 samples after the w2 samples (s), from th
 CFG_PCAL = 51  # 1.0: accumulate the plant-calibration sums over the healthy start
 CFG_PCAL_TOL = 52  # current change tolerated in a calibration interval, relative to max |I|
 CFG_COV_SCALE = 53  # 1.0: report bands scaled by the running NIS / dof (when above 1)
-CFG_LEN = 54
+CFG_ALPHA_FLOOR = 54  # relative std of alpha the data cannot reduce (the plant calibration's)
+CFG_LEN = 55
 #: sigma = median(|y_k - 3 y_k-1 + 3 y_k-2 - y_k-3|) / (0.6745 sqrt(20)) for white noise
 MEDIAN_TO_SIGMA = 1.0 / (0.6744897501960817 * math.sqrt(20.0))
 #: third differences needed before the noise estimate replaces the configured R
@@ -164,11 +165,13 @@ ST_PCAL_WY = 147  # 12: sum w y^T (6 x 2)
 ST_PCAL_ZZ = 159  # 36: sum z z^T
 ST_PCAL_ZY = 195  # 12: sum z y^T
 ST_PCAL_YY = 207  # 4: sum y y^T
-ST_PCAL_OK = 211  # 1.0 applied, 0.0 rejected, NaN not done
-ST_NIS_RATIO = 212  # running mean of NIS / dof (the covariance scale of the reported bands)
-ST_NIS_N = 213  # its sample count
-ST_RING = 214  # bins currents, then bins durations
-ST_BASE_LEN = 214
+ST_PCAL_WW = 211  # 36: sum w w^T (the instrumental-variable covariance)
+ST_PCAL_OK = 247  # 1.0 applied, 0.0 rejected, NaN not done
+ST_NIS_RATIO = 248  # NIS / dof of the last health window (the covariance scale of the bands)
+ST_NIS_N = 249  # windows that set it
+ST_PCAL_ALPHA_REL = 250  # relative std of the calibrated alpha: a floor of the alpha band
+ST_RING = 251  # bins currents, then bins durations
+ST_BASE_LEN = 251
 ST_BASE_LEN_V1 = 49
 ST_BASE_LEN_V2 = 87
 PCAL_HIST_LEN = 11
@@ -508,6 +511,7 @@ def _pcal_accumulate(
             for j in range(PCAL_REG):
                 st[ST_PCAL_WZ + PCAL_REG * i + j] += w[i] * z[j]
                 st[ST_PCAL_ZZ + PCAL_REG * i + j] += z[i] * z[j]
+                st[ST_PCAL_WW + PCAL_REG * i + j] += w[i] * w[j]
             for j in range(2):
                 st[ST_PCAL_WY + 2 * i + j] += w[i] * y[j]
                 st[ST_PCAL_ZY + 2 * i + j] += z[i] * y[j]
@@ -650,6 +654,7 @@ def _ekf_kernel(
     pcal_int = st[ST_PCAL_INT]
     half_calib = 0.5 * cfg[CFG_CALIB_S]
     scale_on = cfg[CFG_COV_SCALE] == 1.0
+    alpha_floor = cfg[CFG_ALPHA_FLOOR]
     nis_ratio = st[ST_NIS_RATIO]
     nis_n = st[ST_NIS_N]
 
@@ -1097,18 +1102,14 @@ def _ekf_kernel(
                 st[ST_PCAL_INT_MID] = pcal_int
             _pcal_accumulate(cfg, st, tk, y0_raw, y1, current[k], pcal_end - half_calib)
         # --- per-sample outputs
-        # covariance scale of the reported bands: the running mean of NIS / dof (memory as the
-        # noise estimates), when above 1. If the innovations exceed their predicted covariance
-        # by lam on average, the unmodelled error acting like noise, Q and R are too small by
-        # lam; scaling both leaves the gain unchanged and scales P by lam.
-        if dof > 0.0 and scale_on and math.isfinite(nis):
-            g_r = max(1.0 / (nis_n + 1.0), (tk - t_last) / memory if memory > 0.0 else 0.0)
-            nis_ratio = nis / dof if nis_n == 0.0 else nis_ratio + g_r * (nis / dof - nis_ratio)
-            nis_n += 1.0
+        # covariance scale of the reported bands: NIS / dof of the last completed health window
+        # (set at the window's end below), when above 1. If the innovations exceed their
+        # predicted covariance by lam on average, the unmodelled error acting like noise, Q and
+        # R are too small by lam; scaling both leaves the gain unchanged and scales P by lam.
         cs = math.sqrt(nis_ratio) if scale_on and nis_ratio > 1.0 else 1.0
         sg0 = math.sqrt(max(p00, 0.0)) * cs
         sg1 = math.sqrt(max(p11, 0.0)) * cs
-        sg2 = math.sqrt(max(p22, 0.0)) * cs
+        sg2 = math.sqrt(max(p22, 0.0) * cs * cs + (alpha_floor * x2) ** 2)
         sg3 = math.sqrt(max(p33, 0.0)) * cs
         dn = 1.0 - x2 / alpha0
         out[OUT_W1, k] = x0
@@ -1258,7 +1259,10 @@ def _ekf_kernel(
             row[WIN_R] = rh0
             row[WIN_R + 1] = rh1
             row[WIN_ALPHA0] = alpha0
-            row[WIN_COV_SCALE] = cs * cs
+            if w_sum_dof > 0.0:
+                nis_ratio = w_sum_nis / w_sum_dof
+                nis_n += 1.0
+            row[WIN_COV_SCALE] = nis_ratio if scale_on and nis_ratio > 1.0 else 1.0
             n_win += 1
             w_count = 0.0
             w_n_upd = w_sum_nis = w_sum_dof = w_n_nis_out = w_n_e_out = w_n_e = 0.0
