@@ -495,6 +495,13 @@ def _apply_calibration(
         vec[kern.ST_QW] = 0.0
         vec[kern.ST_QW + 1] = 0.0
         vec[kern.ST_N_ADAPT] = 0.0
+        # and the prognosis record compared the wrong plant's predictions
+        vec[kern.ST_HIST_T] = math.nan
+        for i in (
+            kern.ST_ERR_N, kern.ST_ERR_SUM2, kern.ST_ERR_SUMV, kern.ST_ERR_SUM,
+            kern.ST_ERR_REAL, kern.ST_ERR_PRED,
+        ):  # fmt: skip
+            vec[i] = 0.0
         if config.alpha0 is None:
             lf = min(m_hat * float(vec[kern.ST_PCAL_INT_MID]), kern.CALIB_MAX_LOG)  # eq. 7
             vec[kern.ST_ALPHA0] = fit.alpha * math.exp(lf)

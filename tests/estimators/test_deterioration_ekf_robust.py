@@ -427,3 +427,26 @@ def test_version_1_state_loads_and_steps() -> None:
     assert np.max(err[-500:]) < 0.01
     with pytest.raises(StateVersionError, match="7"):
         de.load_state(blob.replace(b'"version":1', b'"version":7'))
+
+
+def test_profile_segments_merge_within_tolerance() -> None:
+    """A recorded profile with 20 ms ramp steps: merged at 0.5 A it keeps its period and mean
+    current with far fewer segments, and the prognosis moves by little; at 0 A nothing but
+    equal currents merge (the exact profile)."""
+    durations, currents = fs.mission_profile(1.0)
+    exact = rulmod.load_segments(rulmod.ProfileLoad(durations_s=durations, current_a=currents), 3.0)
+    merged = rulmod.load_segments(
+        rulmod.ProfileLoad(durations_s=durations, current_a=currents, merge_tolerance_a=0.5), 3.0
+    )
+    assert exact is not None and merged is not None
+    assert len(exact[0]) > 500 and len(merged[0]) < len(exact[0]) / 3
+    assert merged[0].sum() == pytest.approx(exact[0].sum(), rel=1e-12)
+    assert np.dot(*merged) == pytest.approx(np.dot(*exact), rel=1e-9)
+    plant = fs.FrictionDriveParams().as_array()
+    settings = rulmod.PrognosisSettings(n_trajectories=20, failure_dn=0.5)
+    x = np.array([0.0, 0.0, 10.0, 0.01])
+    cov = np.diag([1e-6, 1e-8, 1e-8, 1e-12])
+    a = rulmod.prognose(plant, 10.0, x, cov, 3.0, exact, settings)
+    b = rulmod.prognose(plant, 10.0, x, cov, 3.0, merged, settings)
+    assert a.q50_s is not None and b.q50_s is not None
+    assert b.q50_s == pytest.approx(a.q50_s, rel=0.05)
