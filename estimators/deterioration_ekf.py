@@ -36,6 +36,17 @@ Choices where the seed is silent (docs/methods-deterioration-ekf.md has the reas
 * ``alpha0 = None``: estimated over the first ``alpha0_calibration_s`` (least-variance
   candidate of alpha-hat carried back over the wear, eq. 7); Dn is NaN and the status
   ``learning`` meanwhile;
+* plant calibration (``plant_calibration``, ``estimators.dekf_calibration``): over the same
+  healthy segment an instrumental-variable regression of the sampled plant on the intervals
+  without a current change, fitted for alpha, B1, J1, J2 and the motor-speed channel's time
+  offset after the wheel-speed channel's (B2 is not identifiable and stays configured); a fit
+  that passes its checks replaces the configured plant in the filter and the prognosis,
+  alpha-hat restarts from it (the fit's alpha uncertainty stays as a floor of the band) and,
+  with ``alpha0 = None``, gives alpha0; the motor speed is then compared with ``w1 + skew
+  dw1/dt``;
+* reported bands scaled by ``max(1, NIS / dof)`` of the last health window
+  (``covariance_scaling``): innovations larger than their covariance mean P too small by that
+  factor;
 * served statuses (``serving_status``): ``failed`` latched past the threshold, ``learning``
   before convergence, ``unknown`` while the innovation tests reject (asymmetric hysteresis),
   else the Dn and RUL levels; prognoses are widened by the stream's record of predicted against
@@ -495,13 +506,6 @@ def _apply_calibration(
         vec[kern.ST_QW] = 0.0
         vec[kern.ST_QW + 1] = 0.0
         vec[kern.ST_N_ADAPT] = 0.0
-        # and the prognosis record compared the wrong plant's predictions
-        vec[kern.ST_HIST_T] = math.nan
-        for i in (
-            kern.ST_ERR_N, kern.ST_ERR_SUM2, kern.ST_ERR_SUMV, kern.ST_ERR_SUM,
-            kern.ST_ERR_REAL, kern.ST_ERR_PRED,
-        ):  # fmt: skip
-            vec[i] = 0.0
         if config.alpha0 is None:
             lf = min(m_hat * float(vec[kern.ST_PCAL_INT_MID]), kern.CALIB_MAX_LOG)  # eq. 7
             vec[kern.ST_ALPHA0] = fit.alpha * math.exp(lf)
@@ -1100,6 +1104,16 @@ def prognosis_at(config: DekfConfig, row: FloatArray, vec: FloatArray) -> RulEst
     x = row[kern.RS_X : kern.RS_X + 4].copy()
     cov = _unpack_cov(row[kern.RS_P : kern.RS_P + 10])
     alpha0 = float(row[kern.RS_ALPHA0])
+    t_cal = float(vec[kern.ST_PCAL_T])
+    if vec[kern.ST_PCAL_OK] == 1.0 and float(vec[kern.ST_HIST_T]) < t_cal <= t_s:
+        # the record compared the predictions of the plant the calibration replaced (checked
+        # here, in time order, so that it does not depend on the batch split)
+        vec[kern.ST_HIST_T] = math.nan
+        for i in (
+            kern.ST_ERR_N, kern.ST_ERR_SUM2, kern.ST_ERR_SUMV, kern.ST_ERR_SUM,
+            kern.ST_ERR_REAL, kern.ST_ERR_PRED,
+        ):  # fmt: skip
+            vec[i] = 0.0
     segments = rulmod.load_segments(
         config.rul_load, t_s, _observed_profile(row, config.observed_bins)
     )
