@@ -650,7 +650,8 @@ def _ekf_kernel(
     r2 = cfg[CFG_R2]
     skew = cfg[CFG_SKEW]
     pcal_on = cfg[CFG_PCAL] == 1.0
-    pcal_end = st[ST_PCAL_END]
+    # a calibration under way stops if the configuration no longer asks for it
+    pcal_end = st[ST_PCAL_END] if pcal_on else np.nan
     pcal_int = st[ST_PCAL_INT]
     half_calib = 0.5 * cfg[CFG_CALIB_S]
     scale_on = cfg[CFG_COV_SCALE] == 1.0
