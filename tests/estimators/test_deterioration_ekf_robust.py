@@ -328,7 +328,7 @@ def test_plant_calibration_finds_and_corrects_the_channel_skew() -> None:
     _, on = run({"alpha0": drive.alpha0, "plant_calibration": True}, t, ch)
     fit = _calibration_event(on)
     assert fit["applied"] and fit["skew_s"] == pytest.approx(1.5e-3, abs=2e-4)
-    err_off = np.median(np.abs(on.samples["alpha"] * 0 + off.samples["alpha"] / alpha - 1.0)[after])
+    err_off = np.median(np.abs(off.samples["alpha"] / alpha - 1.0)[after])
     err_on = np.median(np.abs(on.samples["alpha"] / alpha - 1.0)[after])
     assert err_on < 0.3 * err_off
 
