@@ -48,10 +48,17 @@ from estimators.kernels import dekf_kernels as kern
 MAX_REL_STD = 0.05
 #: a fitted factor beyond [1 / MAX_FACTOR, MAX_FACTOR] of the configured value is not believed
 MAX_FACTOR = 1.6
-#: the skew is applied only when it is this many of its standard deviations from 0
+#: the skew is applied only when it is this many of its standard deviations from 0 and at least
+#: MIN_SKEW_S
 SKEW_SIGNIFICANCE = 2.0
+MIN_SKEW_S = 5e-5
 #: rows needed before a fit is attempted
 MIN_ROWS = 200
+#: a fit is applied only if some parameter differs from its configured value by more than this
+#: (relative) and by more than 3 of its standard deviations: the validation's fits were off by up
+#: to 2-3 % of J1 (their standard deviations understate that), so a fit closer than this to the
+#: configured plant confirms it rather than replacing it by a noisier one
+MIN_CHANGE = 0.01
 
 
 @dataclass(frozen=True)
@@ -201,7 +208,7 @@ def fit_plant(st: FloatArray, plant: FloatArray, alpha_guess: float) -> PlantFit
         j1=j1,
         j2=j2,
         rel_std=(float(sd[2]), float(sd[1]), float(sd[3])),
-        skew_s=skew if abs(skew) > SKEW_SIGNIFICANCE * skew_sd else 0.0,
+        skew_s=skew if abs(skew) > max(SKEW_SIGNIFICANCE * skew_sd, MIN_SKEW_S) else 0.0,
         skew_std_s=skew_sd,
     )
     if not sol.success or not np.all(np.isfinite(th)):
@@ -216,6 +223,21 @@ def fit_plant(st: FloatArray, plant: FloatArray, alpha_guess: float) -> PlantFit
             return _rejected(fit, f"{name} not identified (relative std {rel:.3g})")
         if name != "alpha" and not 1.0 / MAX_FACTOR <= value / ref <= MAX_FACTOR:
             return _rejected(fit, f"{name} {value:.4g} implausible (configured {ref:.4g})")
+    changes = [
+        (abs(value / ref - 1.0), rel)
+        for value, ref, rel in ((b1, plant[2], sd[2]), (j1, plant[4], sd[1]), (j2, plant[5], sd[3]))
+    ]
+    if all(change <= max(MIN_CHANGE, 3.0 * float(rel)) for change, rel in changes):
+        if fit.skew_s == 0.0:
+            return _rejected(
+                fit,
+                f"the configured plant agrees with the fit (B1, J1, J2 within {MIN_CHANGE:g} "
+                "relative): kept",
+            )
+        # only the skew is applied; the configured plant is confirmed
+        return PlantFit(
+            **{**fit.__dict__, "applied": True, "b1": plant[2], "j1": plant[4], "j2": plant[5]}
+        )
     return PlantFit(**{**fit.__dict__, "applied": True})
 
 

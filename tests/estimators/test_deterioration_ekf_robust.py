@@ -273,7 +273,7 @@ def test_split_invariance_with_the_adaptive_parts_on(square: Any) -> None:
     assert [r for o in outs for r in o.rul] == list(ref.rul)
     assert [w for o in outs for w in o.health] == list(ref.health)
     # the plant calibration ends inside the batch (1500, 4101): the same fit, the same events
-    assert any(e.kind == "plant_calibrated" for e in ref.events)
+    assert any(e.kind.startswith("plant_calibrat") for e in ref.events)
     assert sorted((e.t_s, e.kind) for o in outs for e in o.events) == sorted(
         (e.t_s, e.kind) for e in ref.events
     )
