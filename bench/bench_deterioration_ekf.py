@@ -28,6 +28,8 @@ PROGNOSIS_Q = [0.0, 0.0, 0.0, 1e-13]
 SEED: dict[str, Any] = {
     "alpha0": 10.0,
     "input_model": "hold",
+    "plant_calibration": False,
+    "covariance_scaling": False,
     "noise_adaptation": False,
     "gate_sigma": None,
     "m_walk_rel": 0.0,
@@ -152,6 +154,15 @@ def rul_cases() -> list[tuple[str, np.ndarray, np.ndarray, tuple[np.ndarray, np.
     cases.append(
         (f"mission profile ({len(segments[0])} segments per 14 s)", state.x, state.P, segments, 10.0)
     )
+    merged = rul.ProfileLoad(durations_s=durations, current_a=currents, merge_tolerance_a=0.5)
+    segments = rul.load_segments(merged, float(t[-1]))
+    assert segments is not None
+    cases.append(
+        (
+            f"mission profile merged at 0.5 A ({len(segments[0])} segments per 14 s)",
+            state.x, state.P, segments, 10.0,
+        )
+    )  # fmt: skip
     return cases
 
 

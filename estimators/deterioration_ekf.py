@@ -36,6 +36,17 @@ Choices where the seed is silent (docs/methods-deterioration-ekf.md has the reas
 * ``alpha0 = None``: estimated over the first ``alpha0_calibration_s`` (least-variance
   candidate of alpha-hat carried back over the wear, eq. 7); Dn is NaN and the status
   ``learning`` meanwhile;
+* plant calibration (``plant_calibration``, ``estimators.dekf_calibration``): over the same
+  healthy segment an instrumental-variable regression of the sampled plant on the intervals
+  without a current change, fitted for alpha, B1, J1, J2 and the motor-speed channel's time
+  offset after the wheel-speed channel's (B2 is not identifiable and stays configured); a fit
+  that passes its checks replaces the configured plant in the filter and the prognosis,
+  alpha-hat restarts from it (the fit's alpha uncertainty stays as a floor of the band) and,
+  with ``alpha0 = None``, gives alpha0; the motor speed is then compared with ``w1 + skew
+  dw1/dt``;
+* reported bands scaled by ``max(1, NIS / dof)`` of the last health window
+  (``covariance_scaling``): innovations larger than their covariance mean P too small by that
+  factor;
 * served statuses (``serving_status``): ``failed`` latched past the threshold, ``learning``
   before convergence, ``unknown`` while the innovation tests reject (asymmetric hysteresis),
   else the Dn and RUL levels; prognoses are widened by the stream's record of predicted against
@@ -56,6 +67,7 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import AllowInfNan, Field, Strict, StrictInt, ValidationError, model_validator
 
+from estimators import dekf_calibration as cal
 from estimators import rul as rulmod
 from estimators.base import (
     STATUSES,
@@ -80,7 +92,7 @@ from estimators.kernels import dekf_kernels as kern
 from estimators.simulators.friction_drive import FrictionDriveParams
 
 NAME = "deterioration_ekf"
-STATE_VERSION = 2
+STATE_VERSION = 3
 CHANNELS = ("current", "motor_speed", "wheel_speed")
 STATE_NAMES = ("w1", "w2", "alpha", "m")
 SAMPLE_OUTPUTS = (
@@ -221,6 +233,25 @@ class DekfConfig(EstimatorConfigModel):
         default=20.0,
         description="length of the segment alpha0 is estimated over, s: the unit must start "
         "healthy, and the current must vary over it (alpha is seen in the transients)",
+    )
+    plant_calibration: bool = Field(
+        default=True,
+        description="over the first alpha0_calibration_s seconds (the unit healthy), fit the "
+        "motor friction B1, the inertias J1, J2 and the time offset of the motor-speed channel "
+        "after the wheel-speed channel to the intervals that hold no current change "
+        "(instrumental-variable regression of the sampled plant); a fit that passes its checks "
+        "replaces the configured values for the rest of the stream and for the prognosis",
+    )
+    plant_calibration_tolerance: Annotated[FiniteFloat, Field(gt=0.0, le=0.1)] = Field(
+        default=0.001,
+        description="current change tolerated inside a calibration interval, relative to the "
+        "largest |current| seen in the segment",
+    )
+    covariance_scaling: bool = Field(
+        default=True,
+        description="scale the reported bands (the *_3sigma outputs, the Dn bounds, the "
+        "diagnosis) by NIS / dof of the last health window when it is above 1: innovations "
+        "larger than their predicted covariance mean a covariance too small by that factor",
     )
     alpha_max_rel: NonNegativeFloat = Field(
         default=0.1,
@@ -391,8 +422,109 @@ def _kernel_config(config: DekfConfig) -> FloatArray:
     cfg[kern.CFG_CALIB_S] = config.alpha0_calibration_s
     cfg[kern.CFG_ALPHA_PRIOR] = config.alpha0_prior
     cfg[kern.CFG_ALPHA_PRIOR_VAR] = (config.alpha0_prior_rel_std * config.alpha0_prior) ** 2
+    cfg[kern.CFG_SKEW] = 0.0
+    cfg[kern.CFG_PCAL] = 1.0 if config.plant_calibration else 0.0
+    cfg[kern.CFG_PCAL_TOL] = config.plant_calibration_tolerance
+    cfg[kern.CFG_COV_SCALE] = 1.0 if config.covariance_scaling else 0.0
     cfg.setflags(write=False)
     return cfg
+
+
+def calibrated_plant(config: DekfConfig, vec: FloatArray) -> FloatArray | None:
+    """``[B1, B2, J1, J2, skew]`` in use after an applied plant calibration, else None."""
+    if vec[kern.ST_PCAL_OK] != 1.0:
+        return None
+    return vec[kern.ST_PLANT : kern.ST_PLANT + 5].copy()
+
+
+def plant_vector_of(config: DekfConfig, vec: FloatArray, t_s: float = math.inf) -> FloatArray:
+    """``[r1, r2, B1, B2, J1, J2, Km]`` in use at stream time ``t_s``: the calibrated one from
+    the calibration's end on, the configured one before (or without a calibration)."""
+    cal = calibrated_plant(config, vec)
+    if cal is None or t_s < vec[kern.ST_PCAL_T]:
+        return config.plant_vector
+    plant = config.plant_vector.copy()
+    plant[2:6] = cal[:4]
+    return plant
+
+
+def _state_kernel_config(config: DekfConfig, vec: FloatArray) -> FloatArray:
+    """The kernel configuration for a state: the configured one, with the calibrated plant and
+    skew once a calibration has been applied."""
+    cal = calibrated_plant(config, vec)
+    if cal is None:
+        return config.kernel_vector
+    cfg = config.kernel_vector.copy()
+    cfg[kern.CFG_B1] = cal[0]
+    cfg[kern.CFG_B2] = cal[1]
+    cfg[kern.CFG_J1] = cal[2]
+    cfg[kern.CFG_J2] = cal[3]
+    cfg[kern.CFG_INV_J1] = 1.0 / cal[2]
+    cfg[kern.CFG_INV_J2] = 1.0 / cal[3]
+    cfg[kern.CFG_SKEW] = cal[4]
+    cfg[kern.CFG_ALPHA_FLOOR] = float(vec[kern.ST_PCAL_ALPHA_REL])
+    return cfg
+
+
+def _apply_calibration(
+    config: DekfConfig, events: list[EstimatorEvent], st: FloatArray, cfg: FloatArray, t_end: float
+) -> FloatArray:
+    """End of the plant-calibration segment (called by the kernel driver): fit the plant to the
+    sums in ``st``; if the fit is applied, restart alpha-hat from the fitted alpha (its
+    covariance from the fit, its correlations dropped: they were built with the wrong plant),
+    give m-hat its prior variance back, and, when alpha0 is estimated, carry the fitted alpha
+    back over the wear to the stream start (eq. 7). Returns the kernel configuration to go on
+    with."""
+    vec = st
+    x2 = float(vec[kern.ST_X + 2])
+    a_mid = float(vec[kern.ST_PCAL_ALPHA_MID])
+    fit = cal.fit_plant(vec, config.plant_vector, a_mid if math.isfinite(a_mid) else x2)
+    vec[kern.ST_PCAL_T] = t_end
+    vec[kern.ST_PCAL_OK] = 1.0 if fit.applied else 0.0
+    detail = fit.as_dict()
+    if fit.applied:
+        vec[kern.ST_PCAL_ALPHA_REL] = fit.alpha_rel_std
+        vec[kern.ST_PLANT : kern.ST_PLANT + 5] = (
+            fit.b1, config.plant.b2_nm_s, fit.j1, fit.j2, fit.skew_s
+        )  # fmt: skip
+        # the fit is alpha at the segment centre; the wear over the second half, unknown (the
+        # filter's m-hat was built with the wrong plant), enters as variance at the prior m0
+        wear2 = abs(config.m0) * max(float(vec[kern.ST_PCAL_INT] - vec[kern.ST_PCAL_INT_MID]), 0.0)
+        alpha_now = fit.alpha
+        m_hat = max(float(vec[kern.ST_X + 3]), 0.0)
+        p = kern.ST_P
+        for i in (2, 3, 5, 6, 8):  # alpha and m rows/columns: p02 p03 p12 p13 p23
+            vec[p + i] = 0.0
+        vec[p + 7] = (fit.alpha_rel_std**2 + wear2 * wear2) * alpha_now * alpha_now
+        # m-hat restarts from its prior: the wear it learnt was that of the wrong plant
+        vec[kern.ST_X + 3] = config.m0
+        vec[p + 9] = config.p0_diag[3]
+        # the innovation record of the wrong plant, and the speed process noise that covariance
+        # matching learnt from it, say nothing about the calibrated plant
+        vec[kern.ST_NIS_RATIO] = math.nan
+        vec[kern.ST_NIS_N] = 0.0
+        vec[kern.ST_QW] = 0.0
+        vec[kern.ST_QW + 1] = 0.0
+        vec[kern.ST_N_ADAPT] = 0.0
+        if config.alpha0 is None:
+            lf = min(m_hat * float(vec[kern.ST_PCAL_INT_MID]), kern.CALIB_MAX_LOG)  # eq. 7
+            vec[kern.ST_ALPHA0] = fit.alpha * math.exp(lf)
+            vec[kern.ST_A0_VAR] = fit.alpha_rel_std**2 + (
+                float(vec[kern.ST_PCAL_INT_MID]) ** 2 * float(vec[p + 9])
+            )
+        a0 = float(vec[kern.ST_ALPHA0])
+        if config.nonnegative and math.isfinite(a0):
+            alpha_now = min(alpha_now, a0 * (1.0 + config.alpha_max_rel))
+        vec[kern.ST_X + 2] = alpha_now
+        detail["alpha0"] = _none_if_nan(a0)
+    events.append(
+        EstimatorEvent(
+            t_s=t_end,
+            kind="plant_calibrated" if fit.applied else "plant_calibration_rejected",
+            detail=detail,
+        )
+    )
+    return _state_kernel_config(config, vec)
 
 
 def parse_config(raw: Mapping[str, Any]) -> DekfConfig:
@@ -537,6 +669,14 @@ _FRESH_NAN = (
     *range(kern.ST_Y_HIST, kern.ST_Y_HIST + 6),
     kern.ST_A0_BEST,
     kern.ST_A0_VAR,
+    kern.ST_PCAL_END,
+    kern.ST_PCAL_T,
+    *range(kern.ST_PCAL_HIST, kern.ST_PCAL_HIST + kern.PCAL_HIST_LEN),
+    kern.ST_PCAL_ALPHA_MID,
+    kern.ST_PCAL_INT_MID,
+    *range(kern.ST_PLANT, kern.ST_PLANT + 5),
+    kern.ST_PCAL_OK,
+    kern.ST_NIS_RATIO,
 )
 
 
@@ -560,19 +700,31 @@ def _upgrade_v1(doc: dict[str, Any]) -> dict[str, Any]:
     fresh state has them. alpha0 stays NaN with no calibration under way: a version-1 filter
     always ran with a configured alpha0, and the kernel takes the configured one for such a
     state (its alpha-hat if the configuration no longer gives one)."""
+    return _insert_fresh(doc, kern.ST_BASE_LEN_V1, kern.ST_BASE_LEN_V2, 2)
+
+
+def _upgrade_v2(doc: dict[str, Any]) -> dict[str, Any]:
+    """Version 2 -> 3: the plant-calibration entries are inserted before the observed-load
+    ring, as a fresh state has them. The end of the calibration segment stays NaN: the stream
+    is past its start, so no calibration runs and the configured plant stays in use."""
+    return _insert_fresh(doc, kern.ST_BASE_LEN_V2, kern.ST_BASE_LEN, 3)
+
+
+def _insert_fresh(doc: dict[str, Any], old_len: int, new_len: int, version: int) -> dict[str, Any]:
+    """Insert the entries ``old_len .. new_len`` of a fresh state before the ring."""
     vec = [float.fromhex(v) for v in doc["vector"]]
-    base, ring = vec[: kern.ST_BASE_LEN_V1], vec[kern.ST_BASE_LEN_V1 :]
-    fresh = [0.0] * (kern.ST_BASE_LEN - kern.ST_BASE_LEN_V1)
+    base, ring = vec[:old_len], vec[old_len:]
+    fresh = [0.0] * (new_len - old_len)
     for i in _FRESH_NAN:
-        if i >= kern.ST_BASE_LEN_V1:
-            fresh[i - kern.ST_BASE_LEN_V1] = math.nan
+        if old_len <= i < new_len:
+            fresh[i - old_len] = math.nan
     out = dict(doc)
-    out["version"] = 2
+    out["version"] = version
     out["vector"] = [float(v).hex() for v in base + fresh + ring]
     return out
 
 
-_UPGRADES: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {1: _upgrade_v1}
+_UPGRADES: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {1: _upgrade_v1, 2: _upgrade_v2}
 
 
 def load_state(data: bytes) -> DekfState:
@@ -690,6 +842,7 @@ def _health(row: FloatArray, config: DekfConfig) -> tuple[HealthWindow, bool | N
         "gated_fraction": float(row[kern.WIN_N_GATED] / n_upd) if n_upd > 0.0 else None,
         "noise_var_w1": _none_if_nan(row[kern.WIN_R]),
         "noise_var_w2": _none_if_nan(row[kern.WIN_R + 1]),
+        "covariance_scale": float(row[kern.WIN_COV_SCALE]),
     }
     fails: list[str] = []
     consistent: bool | None = None
@@ -848,7 +1001,11 @@ def _observed_profile(row: FloatArray, bins: int) -> tuple[FloatArray, FloatArra
 
 
 def _predicted_rate(
-    config: DekfConfig, segments: tuple[FloatArray, FloatArray], alpha: float, m: float
+    config: DekfConfig,
+    plant: FloatArray,
+    segments: tuple[FloatArray, FloatArray],
+    alpha: float,
+    m: float,
 ) -> float:
     """Rate of ``-ln alpha`` (1/s) now, under the assumed load, on its periodic trajectory."""
     seg_d = np.ascontiguousarray(segments[0], dtype=np.float64)
@@ -857,7 +1014,7 @@ def _predicted_rate(
         return math.nan
     memo = np.zeros((seg_d.shape[0], kern.MAX_SUB + 2))
     _, change, _, _ = kern.drifting_probe(
-        config.plant_vector, seg_d, seg_c, math.log(alpha), m, config.rul_segment_tol, memo
+        plant, seg_d, seg_c, math.log(alpha), m, config.rul_segment_tol, memo
     )
     return float(-change / seg_d.sum())
 
@@ -947,13 +1104,27 @@ def prognosis_at(config: DekfConfig, row: FloatArray, vec: FloatArray) -> RulEst
     x = row[kern.RS_X : kern.RS_X + 4].copy()
     cov = _unpack_cov(row[kern.RS_P : kern.RS_P + 10])
     alpha0 = float(row[kern.RS_ALPHA0])
+    t_cal = float(vec[kern.ST_PCAL_T])
+    if vec[kern.ST_PCAL_OK] == 1.0 and float(vec[kern.ST_HIST_T]) < t_cal <= t_s:
+        # the record compared the predictions of the plant the calibration replaced (checked
+        # here, in time order, so that it does not depend on the batch split)
+        vec[kern.ST_HIST_T] = math.nan
+        for i in (
+            kern.ST_ERR_N, kern.ST_ERR_SUM2, kern.ST_ERR_SUMV, kern.ST_ERR_SUM,
+            kern.ST_ERR_REAL, kern.ST_ERR_PRED,
+        ):  # fmt: skip
+            vec[i] = 0.0
     segments = rulmod.load_segments(
         config.rul_load, t_s, _observed_profile(row, config.observed_bins)
     )
     if segments is None or not math.isfinite(alpha0):
         return None
     c = config.bound_sigma
-    s_alpha = math.sqrt(max(float(cov[2, 2]), 0.0))
+    cov_scale = float(row[kern.RS_COV_SCALE]) if config.covariance_scaling else 1.0
+    # the calibrated alpha's own uncertainty is a floor no later data reduce (a plant error)
+    floor = float(vec[kern.ST_PCAL_ALPHA_REL]) if t_s >= vec[kern.ST_PCAL_T] else 0.0
+    cov[2, 2] += (floor * x[2]) ** 2
+    s_alpha = math.sqrt(max(float(cov[2, 2]) * cov_scale, 0.0))
     dn = 1.0 - x[2] / alpha0
     if dn >= config.rul_failure_dn:
         vec[kern.ST_FAILED] = 1.0
@@ -962,7 +1133,8 @@ def prognosis_at(config: DekfConfig, row: FloatArray, vec: FloatArray) -> RulEst
     # the record compares only predictions made once m-hat has converged (the wear rate of a
     # converging filter says nothing about the model's error)
     converged = x[3] > 0.0 and math.sqrt(max(cov[3, 3], 0.0)) <= config.rul_converged_m_rel_std * x[3]
-    rate_now = _predicted_rate(config, segments, x[2], x[3]) if converged else math.nan
+    plant = plant_vector_of(config, vec, t_s)
+    rate_now = _predicted_rate(config, plant, segments, x[2], x[3]) if converged else math.nan
     if config.rul_model_error:
         _record_rate_error(vec, t_s, ell, var_ell, rate_now)
     extra_var = rate_error_var(vec) if config.rul_model_error else 0.0
@@ -975,7 +1147,7 @@ def prognosis_at(config: DekfConfig, row: FloatArray, vec: FloatArray) -> RulEst
         extra_var += a0_var / (to_go * to_go)
     settings = config.prognosis
     result = rulmod.prognose(
-        config.plant_vector,
+        plant,
         alpha0,
         x,
         cov,
@@ -1006,6 +1178,13 @@ def prognosis_at(config: DekfConfig, row: FloatArray, vec: FloatArray) -> RulEst
         "model_error_comparisons": int(vec[kern.ST_ERR_N]),
         "failure_dn": config.rul_failure_dn,
         "alpha0": alpha0,
+        "plant": {
+            "calibrated": bool(plant is not config.plant_vector),
+            "b1_nm_s": float(plant[2]),
+            "b2_nm_s": float(plant[3]),
+            "j1_kg_m2": float(plant[4]),
+            "j2_kg_m2": float(plant[5]),
+        },
         "alpha_failure": result.alpha_failure,
         "n_trajectories": settings.n_trajectories,
         "horizon_s": settings.horizon_s,
@@ -1045,6 +1224,15 @@ def prognosis_at(config: DekfConfig, row: FloatArray, vec: FloatArray) -> RulEst
     )
 
 
+def covariance_scale(config: DekfConfig, vec: FloatArray) -> float:
+    """The factor on the filter's covariance in the reported bands: max(1, NIS / dof of the
+    last health window) with ``covariance_scaling``, else 1."""
+    ratio = float(vec[kern.ST_NIS_RATIO])
+    if not config.covariance_scaling or not math.isfinite(ratio):
+        return 1.0
+    return max(ratio, 1.0)
+
+
 def _end_snapshot(vec: FloatArray, t_s: float, bins: int) -> FloatArray:
     """A snapshot row (``RS_*``) of the state at the end of a batch ("every_batch")."""
     row = np.empty(kern.RS_BASE_LEN + 2 * bins, dtype=np.float64)
@@ -1054,6 +1242,8 @@ def _end_snapshot(vec: FloatArray, t_s: float, bins: int) -> FloatArray:
     row[kern.RS_FILLED] = vec[kern.ST_OB_FILLED]
     row[kern.RS_ALPHA0] = vec[kern.ST_ALPHA0]
     row[kern.RS_A0_VAR] = vec[kern.ST_A0_VAR]
+    ok = float(vec[kern.ST_NIS_RATIO])
+    row[kern.RS_COV_SCALE] = max(ok, 1.0) if math.isfinite(ok) else 1.0
     if bins:
         order = (int(vec[kern.ST_OB_HEAD]) + np.arange(bins)) % bins
         row[kern.RS_RING : kern.RS_RING + bins] = vec[kern.ST_RING + order]
@@ -1152,9 +1342,11 @@ def _status(vec: FloatArray, config: DekfConfig) -> StatusReport:
 def _diagnosis(vec: FloatArray, t_s: float, config: DekfConfig) -> Diagnosis:
     x = vec[kern.ST_X : kern.ST_X + 4]
     sig = np.sqrt(np.clip(np.diag(_unpack_cov(vec[kern.ST_P : kern.ST_P + 10])), 0.0, None))
+    scale = covariance_scale(config, vec)
+    sig = sig * math.sqrt(scale)
     c = config.bound_sigma
     alpha0 = float(vec[kern.ST_ALPHA0])
-    detail: dict[str, Any] = {}
+    detail: dict[str, Any] = {"covariance_scale": scale}
     for i, name in enumerate(STATE_NAMES):
         detail[name] = _none_if_nan(x[i])
         detail[f"{name}_3sigma"] = _none_if_nan(c * sig[i])
@@ -1174,6 +1366,20 @@ def _diagnosis(vec: FloatArray, t_s: float, config: DekfConfig) -> Diagnosis:
     served = vec[kern.ST_RUL_STATUS]
     detail["rul_level"] = STATUSES[int(served)] if math.isfinite(served) else None
     detail["rul_model_error_rel_std"] = math.sqrt(rate_error_var(vec))
+    ok = vec[kern.ST_PCAL_OK]
+    cal_plant = calibrated_plant(config, vec)
+    detail["plant_calibration"] = (
+        None
+        if not math.isfinite(ok)
+        else {
+            "applied": bool(ok == 1.0),
+            "t_s": _none_if_nan(vec[kern.ST_PCAL_T]),
+            "b1_nm_s": None if cal_plant is None else float(cal_plant[0]),
+            "j1_kg_m2": None if cal_plant is None else float(cal_plant[2]),
+            "j2_kg_m2": None if cal_plant is None else float(cal_plant[3]),
+            "skew_s": None if cal_plant is None else float(cal_plant[4]),
+        }
+    )
     return Diagnosis(t_s=t_s, detail=detail)
 
 
@@ -1213,14 +1419,22 @@ def step(config: DekfConfig, state: DekfState, batch: Batch) -> tuple[DekfState,
     w1 = _channel_array(batch, "motor_speed", n)
     w2 = _channel_array(batch, "wheel_speed", n)
     vec = state.vector.copy()
+    cal_events: list[EstimatorEvent] = []
     out, win_rows, ev_rows, snap_rows, status = kern.ekf_batch(
-        config.kernel_vector, vec, t, cur, w1, w2
+        _state_kernel_config(config, vec),
+        vec,
+        t,
+        cur,
+        w1,
+        w2,
+        calibrate=lambda st, cfg, t_end: _apply_calibration(config, cal_events, st, cfg, t_end),
     )
     if status != 0:
         raise OutOfOrderError("batch times are not strictly increasing")
     samples = {name: out[i] for i, name in enumerate(SAMPLE_OUTPUTS)}
     windows = [_health(row, config) for row in win_rows]
     events = [_dn_event(row, config) for row in ev_rows]
+    events.extend(cal_events)
     if config.rul_every_s == "every_batch":
         snap_rows = _end_snapshot(vec, float(t[n - 1]), config.observed_bins)[None, :]
     # windows and prognoses in time order (a window ending at a prognosis time comes first)

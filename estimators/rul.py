@@ -78,6 +78,13 @@ class ProfileLoad(EstimatorConfigModel):
         min_length=1, max_length=100_000, description="current held over each segment, A"
     )
     t0_s: FiniteFloat = Field(default=0.0, description="stream time at which a repetition starts, s")
+    merge_tolerance_a: FiniteFloat = Field(
+        default=0.0,
+        ge=0.0,
+        description="consecutive segments whose currents are within this of their run's first "
+        "segment are propagated as one (duration-weighted mean current), A; 0: only equal "
+        "currents (exact). The propagation's cost grows with the segments per period",
+    )
 
     @model_validator(mode="after")
     def _same_length(self) -> ProfileLoad:
@@ -196,8 +203,9 @@ def load_segments(
         currents = np.array([load.high_a, load.low_a])
         t0 = load.t0_s
     else:
-        durations = np.array(load.durations_s)
-        currents = np.array(load.current_a)
+        durations, currents = merge_bins(
+            np.array(load.durations_s), np.array(load.current_a), load.merge_tolerance_a
+        )
         t0 = load.t0_s
     period = float(durations.sum())
     return _rotate(durations, currents, float(np.mod(t_s - t0, period)))

@@ -30,6 +30,8 @@ MIN_LIFE_S = 40.0
 PROGNOSES_PER_LIFE = 20
 TRAJECTORIES = 300
 LEVELS = ("ok", "watch", "alert", "failed")
+#: the recorded profile's 20 ms ramp steps merged within this current for the prognosis
+PROFILE_MERGE_A = 0.5
 
 
 def load_config(drive: fs.Drive) -> dict[str, Any]:
@@ -52,6 +54,7 @@ def load_config(drive: fs.Drive) -> dict[str, Any]:
             "durations_s": list(durations),
             "current_a": list(currents),
             "t0_s": -p["phase_s"],
+            "merge_tolerance_a": PROFILE_MERGE_A,
         }
     # the ring covers 30 s of recent current in 0.1 s bins
     return {"kind": "observed", "bin_samples": max(1, round(0.1 * drive.rate_hz)), "bins": 300}
@@ -88,6 +91,7 @@ class DriveResult:
     alpha0_err: float = math.nan
     gated: float = 0.0
     consistent_windows: float = math.nan
+    calibration: dict[str, Any] = field(default_factory=dict)
 
 
 def _true_level(dn: float, rul_s: float, config: de.DekfConfig) -> str:
@@ -147,6 +151,9 @@ def run_drive(drive: fs.Drive, data: fs.DriveData, alpha0_known: bool) -> DriveR
     if math.isfinite(state.alpha0):
         res.alpha0_err = state.alpha0 / drive.alpha0 - 1.0
     res.gated = state.gated_updates / len(data.t_s)
+    cal = [e.detail for e in out.events if e.kind.startswith("plant_calibrat")]
+    if cal:
+        res.calibration = dict(cal[0])
     verdicts = [w.indicators["consistent"] for w in windows if w.indicators["consistent"] is not None]
     res.consistent_windows = float(np.mean(verdicts)) if verdicts else math.nan
     return res
@@ -299,6 +306,8 @@ def drives_section(n: int, base_seed: int = BASE_SEED, log: Callable[[str], None
         "",
         *table(by_condition(b_res)),
         "",
+        *calibration_lines(a_res),
+        "",
         f"alpha0 estimate error (B): median {_fmt(float(np.median(np.abs(a0))) if a0.size else math.nan, '.2f')} %, "
         f"largest {_fmt(float(np.max(np.abs(a0))) if a0.size else math.nan, '.2f')} %. "
         f"Statuses served (A): "
@@ -327,6 +336,48 @@ def drives_section(n: int, base_seed: int = BASE_SEED, log: Callable[[str], None
     return lines
 
 
+WHERE_MISSED = " **Where the goals are still missed.** The 90th percentile of the RUL error is set by the telegraph drives (the future load is random; see (3)). alpha is inside its 3-sigma band less often at 50-200 Hz than at 500-1000 Hz, and on exact plants less often than before the calibration existed (the previous run of this table: 99.8 % on exact plants without skew): the calibration replaces a right plant by a fitted one whose error (J1 up to 2-3 % off, table above) exceeds the fit's own standard deviations, which are the only part of it the band's floor carries; at low rates the first-order skew correction and the interval input model are also coarsest (a sample interval is 0.14-0.6 of the motor's time constant). Which of these dominates was not analysed."
+
+
+def calibration_lines(results: list[DriveResult]) -> list[str]:
+    """How the plant calibration went (configuration A): applied or refused per load law, and
+    the errors of the applied fits against the truth's plant and skew."""
+    out = [
+        "Plant calibration over the first 20 s (configuration A): per load law, fits applied / "
+        "drives, and over the applied fits the median and largest |relative error| of B1, J1, J2 "
+        "and |error| of the motor-speed channel's skew after the wheel-speed channel's.",
+        "",
+        "| load | applied | B1 median / max | J1 median / max | J2 median / max | skew error median / max | refused because |",
+        "|---|---:|---:|---:|---:|---:|---|",
+    ]
+    for law in ("square", "telegraph", "mission"):
+        res = [r for r in results if r.drive.load == law]
+        if not res:
+            continue
+        applied = [r for r in res if r.calibration.get("applied")]
+        errs: dict[str, list[float]] = {"b1": [], "j1": [], "j2": [], "skew": []}
+        for r in applied:
+            c, p = r.calibration, r.drive.plant
+            errs["b1"].append(abs(c["b1_nm_s"] / p.b1_nm_s - 1.0))
+            errs["j1"].append(abs(c["j1_kg_m2"] / p.j1_kg_m2 - 1.0))
+            errs["j2"].append(abs(c["j2_kg_m2"] / p.j2_kg_m2 - 1.0))
+            true_skew = r.drive.skew_s[1] - r.drive.skew_s[2]
+            errs["skew"].append(abs((c["skew_s"] or 0.0) - true_skew))
+
+        def cell(v: list[float], scale: float, unit: str) -> str:
+            if not v:
+                return "-"
+            return f"{np.median(v) * scale:.2f} / {max(v) * scale:.2f} {unit}"
+
+        reasons = sorted({str(r.calibration.get("reason", "")).split(" (")[0] for r in res if r not in applied})
+        out.append(
+            f"| {law} | {len(applied)} / {len(res)} | {cell(errs['b1'], 100, '%')} | "
+            f"{cell(errs['j1'], 100, '%')} | {cell(errs['j2'], 100, '%')} | "
+            f"{cell(errs['skew'], 1e3, 'ms')} | {'; '.join(reasons) or '-'} |"
+        )
+    return out
+
+
 def reading(a_res: list[DriveResult], b_res: list[DriveResult]) -> list[str]:
     """What the per-condition tables say, with their figures."""
 
@@ -336,28 +387,52 @@ def reading(a_res: list[DriveResult], b_res: list[DriveResult]) -> list[str]:
     clean = pick(a_res, lambda d: not d.mismatch and not any(d.skew_s))
     mis = pick(a_res, lambda d: d.mismatch)
     mis_b = pick(b_res, lambda d: d.mismatch)
-    skew = pick(a_res, lambda d: any(d.skew_s) and not d.mismatch)
-    tele = pick(a_res, lambda d: d.load == "telegraph" and not d.mismatch)
-    square = pick(a_res, lambda d: d.load == "square" and not d.mismatch)
+    skew = pick(a_res, lambda d: any(d.skew_s))
+    tele = pick(a_res, lambda d: d.load == "telegraph")
+    square = pick(a_res, lambda d: d.load == "square")
+    mission = pick(a_res, lambda d: d.load == "mission")
+    mission_mis = pick(a_res, lambda d: d.load == "mission" and d.mismatch)
+    refused = [r for r in a_res if r.calibration and not r.calibration.get("applied")]
+    refused_mission = sum(1 for r in refused if r.drive.load == "mission")
+    served: dict[str, int] = {}
+    for r in a_res:
+        for k, v in r.served.items():
+            served[k] = served.get(k, 0) + v
+    total = sum(served.values()) or 1
     return [
-        "**Reading.** Where the plant is the configured one and the channels are sampled "
-        f"together, the goals are met or nearly (A: median {_fmt(clean['median_err'])} %, 90th "
-        f"percentile {_fmt(clean['p90_err'])} %, coverage {_fmt(clean['coverage'])} %, alpha in 3 "
-        f"sigma {_fmt(clean['alpha_in'])} %), at any rate and noise level and with edges at "
-        "arbitrary instants. Three conditions break them. (1) Friction or inertia off by up to "
-        "20 %: alpha-hat absorbs the mismatch (a bias of up to the mismatch), Dn-hat is off by "
-        "as much and the RUL with it (median "
-        f"{_fmt(mis['median_err'])} %, coverage {_fmt(mis['coverage'])} %); with alpha0 "
-        "estimated on the unit the bias partly cancels in Dn (B: median "
-        f"{_fmt(mis_b['median_err'])} %). (2) Skew between the speed channels: alpha-hat is "
-        f"biased by many sigma (alpha in 3 sigma {_fmt(skew['alpha_in'])} % on exact plants), "
-        f"the RUL less (median {_fmt(skew['median_err'])} %, coverage "
-        f"{_fmt(skew['coverage'])} %). (3) A random telegraph load, whose future no periodic "
-        f"assumption knows (median {_fmt(tele['median_err'])} %, coverage "
-        f"{_fmt(tele['coverage'])} % on exact plants, against {_fmt(square['median_err'])} % and "
-        f"{_fmt(square['coverage'])} % for the square wave). In all three the consistency tests "
-        "reject most health windows and the prognoses are served `unknown`, not `ok`: the "
-        "estimator says it cannot vouch for them.",
+        "**Reading.** Exact plant, channels sampled together (A): median "
+        f"{_fmt(clean['median_err'])} %, 90th percentile {_fmt(clean['p90_err'])} %, coverage "
+        f"{_fmt(clean['coverage'])} %, alpha in 3 sigma {_fmt(clean['alpha_in'])} %. "
+        "(1) Friction or inertia off by up to 20 %: the plant calibration over the healthy start "
+        "finds B1, J1 and J2 (table above) and the filter and the prognosis use them; A on these "
+        f"drives: median {_fmt(mis['median_err'])} %, 90th percentile {_fmt(mis['p90_err'])} %, "
+        f"coverage {_fmt(mis['coverage'])} %, alpha in 3 sigma {_fmt(mis['alpha_in'])} % (B: "
+        f"median {_fmt(mis_b['median_err'])} %). B2 is not identifiable (it moves the wheel's "
+        "pole by about 0.1 %) and keeps its configured value. "
+        "(2) Skew between the channels: the calibration estimates the motor-speed channel's "
+        "offset after the wheel-speed channel's and the update compares the motor speed with "
+        f"the model's slope times the offset; A: median {_fmt(skew['median_err'])} %, coverage "
+        f"{_fmt(skew['coverage'])} %, alpha in 3 sigma {_fmt(skew['alpha_in'])} %. The current "
+        "channel's own offset is not estimated (it is covered by the input-timing variance). "
+        f"(3) Random telegraph load: median {_fmt(tele['median_err'])} %, 90th percentile "
+        f"{_fmt(tele['p90_err'])} %, coverage {_fmt(tele['coverage'])} % (square wave: median "
+        f"{_fmt(square['median_err'])} %, coverage {_fmt(square['coverage'])} %): the observed "
+        "load repeats 30 s of recent current in 0.1 s bins, whose mean wear rate differs from "
+        "the long-run one by the sampling error of the window and is biased low by the bins "
+        "smearing the edges (the wear is mostly transient slip); the stream's record widens "
+        "the interval only by what it has seen between prognoses. "
+        f"(4) Mission profile: median {_fmt(mission['median_err'])} %, coverage "
+        f"{_fmt(mission['coverage'])} %; its current changes in 20 ms steps, so at low sample "
+        "rates few intervals hold no change and the calibration is refused "
+        f"({refused_mission} of {len(refused)} refusals are mission drives): there the "
+        "mismatch stays uncorrected (mission with mismatch: median "
+        f"{_fmt(mission_mis['median_err'])} %, alpha in 3 sigma {_fmt(mission_mis['alpha_in'])} %). "
+        "Served statuses (A): "
+        + ", ".join(f"{k} {100.0 * served.get(k, 0) / total:.0f} %" for k in STATUSES)
+        + ": the consistency tests still reject most health windows (edge transients, the "
+        "current's own offset, the telegraph's unmodelled load), and those prognoses are "
+        "served `unknown`, never `ok`."
+        + WHERE_MISSED,
     ]
 
 

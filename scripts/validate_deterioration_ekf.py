@@ -45,6 +45,8 @@ CAP_S = 2500.0  # longest simulated life; longer draws are redrawn (counted in t
 SEED: dict[str, Any] = {
     "alpha0": 10.0,
     "input_model": "hold",
+    "plant_calibration": False,
+    "covariance_scaling": False,
     "noise_adaptation": False,
     "gate_sigma": None,
     "m_walk_rel": 0.0,
@@ -608,7 +610,8 @@ def main() -> int:
         "The first section runs the kind's defaults on drives made by an independent generator "
         "(not the filter's discretization). The sections after it reproduce the seed and "
         "today's checks on the project's own simulator with the seed's filter settings "
-        "(`input_model` hold, fixed R and Q, no gating, no random walk of m, alpha0 given), "
+        "(`input_model` hold, fixed R and Q, no gating, no random walk of m, no plant "
+        "calibration, no band scaling, alpha0 given), "
         "which that simulator matches by construction (current held over each sample, "
         "channels sampled together).",
         "",

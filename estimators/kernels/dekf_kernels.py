@@ -24,6 +24,7 @@ Flat layouts (indices are the module constants below):
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 from numba import njit
@@ -70,7 +71,12 @@ CFG_M_WALK = 46  # relative random walk of m per sqrt(s)
 CFG_CALIB_S = 47  # alpha0 calibration length (s), when alpha0 is NaN
 CFG_ALPHA_PRIOR = 48  # initial alpha while calibrating
 CFG_ALPHA_PRIOR_VAR = 49  # its variance
-CFG_LEN = 50
+CFG_SKEW = 50  # time offset of the w1 samples after the w2 samples (s), from the calibration
+CFG_PCAL = 51  # 1.0: accumulate the plant-calibration sums over the healthy start
+CFG_PCAL_TOL = 52  # current change tolerated in a calibration interval, relative to max |I|
+CFG_COV_SCALE = 53  # 1.0: report bands scaled by the running NIS / dof (when above 1)
+CFG_ALPHA_FLOOR = 54  # relative std of alpha the data cannot reduce (the plant calibration's)
+CFG_LEN = 55
 #: sigma = median(|y_k - 3 y_k-1 + 3 y_k-2 - y_k-3|) / (0.6745 sqrt(20)) for white noise
 MEDIAN_TO_SIGMA = 1.0 / (0.6744897501960817 * math.sqrt(20.0))
 #: third differences needed before the noise estimate replaces the configured R
@@ -143,9 +149,33 @@ ST_A0_VAR = 83  # variance of ln(alpha0-hat) (0 when alpha0 is configured)
 ST_ERR_SUM = 84  # log-rate error record: sum of the relative errors
 ST_ERR_REAL = 85  # sum of the realized changes of -ln(alpha) between prognoses
 ST_ERR_PRED = 86  # sum of the predicted changes
-ST_RING = 87  # bins currents, then bins durations
-ST_BASE_LEN = 87
+# version 3: plant calibration (instrumental-variable sums over the healthy start)
+ST_PCAL_END = 87  # end time of the plant calibration segment (NaN: none pending)
+ST_PCAL_T = 88  # time the calibration was applied (NaN: not applied)
+ST_PCAL_N = 89  # rows in the sums
+ST_PCAL_DT = 90  # sum of the rows' sample spacings
+ST_PCAL_HIST = 91  # 11: y1 at k-1..k-3, y2 at k-1..k-3, I at k-1..k-3, t at k-1, k-2
+ST_PCAL_ALPHA_MID = 102  # alpha-hat at the segment centre (NaN before)
+ST_PCAL_INT_MID = 103  # int dv^2 dt from the stream start to the centre
+ST_PCAL_INT = 104  # int dv^2 dt over the segment so far
+ST_PCAL_UMAX = 105  # largest |I| seen in the segment
+ST_PLANT = 106  # 5: B1, B2, J1, J2, skew in use after calibration (NaN: configured; skew 0)
+ST_PCAL_WZ = 111  # 36: sum w z^T (6 x 6, row-major), w the instruments, z the regressors
+ST_PCAL_WY = 147  # 12: sum w y^T (6 x 2)
+ST_PCAL_ZZ = 159  # 36: sum z z^T
+ST_PCAL_ZY = 195  # 12: sum z y^T
+ST_PCAL_YY = 207  # 4: sum y y^T
+ST_PCAL_WW = 211  # 36: sum w w^T (the instrumental-variable covariance)
+ST_PCAL_OK = 247  # 1.0 applied, 0.0 rejected, NaN not done
+ST_NIS_RATIO = 248  # NIS / dof of the last health window (the covariance scale of the bands)
+ST_NIS_N = 249  # windows that set it
+ST_PCAL_ALPHA_REL = 250  # relative std of the calibrated alpha: a floor of the alpha band
+ST_RING = 251  # bins currents, then bins durations
+ST_BASE_LEN = 251
 ST_BASE_LEN_V1 = 49
+ST_BASE_LEN_V2 = 87
+PCAL_HIST_LEN = 11
+PCAL_REG = 6  # regressors: w1, w2, I and the same times (t - t_centre)
 
 # health-window rows
 WIN_T0 = 0
@@ -164,7 +194,8 @@ WIN_SIGMA = 24  # 4
 WIN_N_GATED = 28
 WIN_R = 29  # 2: noise variances in use at the window end
 WIN_ALPHA0 = 31
-WIN_LEN = 32
+WIN_COV_SCALE = 32  # covariance scale at the window end
+WIN_LEN = 33
 
 # Dn level change rows
 EV_T = 0
@@ -182,8 +213,9 @@ RS_P = 5
 RS_FILLED = 15
 RS_ALPHA0 = 16
 RS_A0_VAR = 17
-RS_RING = 18
-RS_BASE_LEN = 18
+RS_COV_SCALE = 18  # covariance scale max(1, running NIS / dof) at the snapshot
+RS_RING = 19
+RS_BASE_LEN = 19
 
 # per-sample output rows
 OUT_W1 = 0
@@ -434,6 +466,73 @@ def _dn_target(dn: float, watch: float, alert: float) -> int:
         return 1
     return 0
 
+@njit(cache=True, error_model="numpy")
+def _pcal_accumulate(
+    cfg: FloatArray, st: FloatArray, tk: float, y1: float, y2: float, ik: float, t_centre: float
+) -> None:
+    """Add the calibration row of the interval ``[t_{k-2}, t_{k-1}]`` and push sample k.
+
+    A row is kept when the current is the same (within ``CFG_PCAL_TOL`` of the largest |I|
+    so far) at samples k-3 .. k: the interval and its neighbours hold no edge, so over it
+    ``y_{k-1} = Ad y_{k-2} + Bd I`` exactly for the sampled LTI plant (alpha frozen). The
+    regressors ``z = [w1_{k-2}, w2_{k-2}, I, tau w1_{k-2}, tau w2_{k-2}, tau I]`` (``tau`` the
+    time from the segment centre: a first-order drift of the map as alpha wears) and the
+    instruments ``w`` (the same with the samples at k-3, whose noise is independent of the
+    row's) give the sums ``w z^T``, ``w y^T`` and, for the residual variances, ``z z^T``,
+    ``z y^T``, ``y y^T``.
+    """
+    h = ST_PCAL_HIST
+    a1 = st[h]
+    a2 = st[h + 1]
+    a3 = st[h + 2]
+    b1 = st[h + 3]
+    b2 = st[h + 4]
+    b3 = st[h + 5]
+    u1 = st[h + 6]
+    u2 = st[h + 7]
+    u3 = st[h + 8]
+    t1 = st[h + 9]
+    t2 = st[h + 10]
+    if math.isfinite(ik):
+        st[ST_PCAL_UMAX] = max(st[ST_PCAL_UMAX], abs(ik))
+    tol = cfg[CFG_PCAL_TOL] * st[ST_PCAL_UMAX]
+    if (
+        math.isfinite(a1 + a2 + a3 + b1 + b2 + b3 + u1 + u2 + u3 + ik + t1 + t2)
+        and abs(ik - u1) <= tol
+        and abs(u1 - u2) <= tol
+        and abs(u2 - u3) <= tol
+    ):
+        tau = t1 - t_centre
+        um = 0.5 * (u1 + u2)
+        z = (a2, b2, um, tau * a2, tau * b2, tau * um)
+        w = (a3, b3, um, tau * a3, tau * b3, tau * um)
+        y = (a1, b1)
+        for i in range(PCAL_REG):
+            for j in range(PCAL_REG):
+                st[ST_PCAL_WZ + PCAL_REG * i + j] += w[i] * z[j]
+                st[ST_PCAL_ZZ + PCAL_REG * i + j] += z[i] * z[j]
+                st[ST_PCAL_WW + PCAL_REG * i + j] += w[i] * w[j]
+            for j in range(2):
+                st[ST_PCAL_WY + 2 * i + j] += w[i] * y[j]
+                st[ST_PCAL_ZY + 2 * i + j] += z[i] * y[j]
+        st[ST_PCAL_YY] += a1 * a1
+        st[ST_PCAL_YY + 1] += a1 * b1
+        st[ST_PCAL_YY + 2] += b1 * a1
+        st[ST_PCAL_YY + 3] += b1 * b1
+        st[ST_PCAL_N] += 1.0
+        st[ST_PCAL_DT] += t1 - t2
+    st[h + 2] = a2
+    st[h + 1] = a1
+    st[h] = y1
+    st[h + 5] = b2
+    st[h + 4] = b1
+    st[h + 3] = y2
+    st[h + 8] = u2
+    st[h + 7] = u1
+    st[h + 6] = ik
+    st[h + 10] = t1
+    st[h + 9] = tk
+
 
 def ekf_batch(
     cfg: FloatArray,
@@ -442,8 +541,15 @@ def ekf_batch(
     current: FloatArray,
     w1_meas: FloatArray,
     w2_meas: FloatArray,
+    calibrate: Callable[[FloatArray, FloatArray, float], FloatArray] | None = None,
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, int]:
     """Run the EKF over one batch, updating ``st`` in place.
+
+    When the plant-calibration segment ends inside the batch the compiled loop stops after
+    that sample; ``calibrate(st, cfg, t_end)`` then fits the plant from the sums in ``st``
+    (updating ``st``) and returns the configuration vector to continue with (the calibrated
+    plant and skew in place of the configured ones). The stop depends on sample times only,
+    so the outputs do not depend on how the stream is split into batches.
 
     Returns:
         (out, windows, events, snapshots, status): ``out`` has ``OUT_LEN`` rows of per-sample
@@ -452,9 +558,33 @@ def ekf_batch(
         changes and prognosis snapshots; ``status`` is 0, or -1 when the times inside the
         batch are not strictly increasing (the state is then left untouched).
     """
-    out = np.empty((OUT_LEN, t.shape[0]))
-    windows, events, snaps, status = _ekf_kernel(cfg, st, t, current, w1_meas, w2_meas, out)
-    return out, windows, events, snaps, status
+    n = t.shape[0]
+    outs: list[FloatArray] = []
+    wins: list[FloatArray] = []
+    evs: list[FloatArray] = []
+    snaps: list[FloatArray] = []
+    start = 0
+    while True:
+        out = np.empty((OUT_LEN, n - start))
+        windows, events, snap, done = _ekf_kernel(
+            cfg, st, t[start:], current[start:], w1_meas[start:], w2_meas[start:], out
+        )
+        if done < 0:
+            return np.full((OUT_LEN, n), np.nan), windows, events, snap, -1
+        outs.append(out[:, : n - start if done == 0 else done])
+        wins.append(windows)
+        evs.append(events)
+        snaps.append(snap)
+        if done == 0:
+            break
+        start += done
+        if calibrate is not None:
+            cfg = calibrate(st, cfg, float(t[start - 1]))
+        if start >= n:
+            break
+    if len(outs) == 1:
+        return outs[0], wins[0], evs[0], snaps[0], 0
+    return np.hstack(outs), np.vstack(wins), np.vstack(evs), np.vstack(snaps), 0
 
 
 @njit(cache=True, error_model="numpy", fastmath=FMA)
@@ -474,6 +604,7 @@ def _ekf_kernel(
         if not t[k] > t[k - 1]:
             out[:] = np.nan
             return np.empty((0, WIN_LEN)), np.empty((0, EV_LEN)), np.empty((0, 1)), -1
+    stop = 0
     hw = cfg[CFG_HEALTH_WINDOW]
     windows = np.empty((int(n // hw) + 1, WIN_LEN))
     events = np.empty((4, EV_LEN))
@@ -517,6 +648,16 @@ def _ekf_kernel(
     m_ref = 0.1 * abs(cfg[CFG_M0])
     r1 = cfg[CFG_R1]
     r2 = cfg[CFG_R2]
+    skew = cfg[CFG_SKEW]
+    pcal_on = cfg[CFG_PCAL] == 1.0
+    # a calibration under way stops if the configuration no longer asks for it
+    pcal_end = st[ST_PCAL_END] if pcal_on else np.nan
+    pcal_int = st[ST_PCAL_INT]
+    half_calib = 0.5 * cfg[CFG_CALIB_S]
+    scale_on = cfg[CFG_COV_SCALE] == 1.0
+    alpha_floor = cfg[CFG_ALPHA_FLOOR]
+    nis_ratio = st[ST_NIS_RATIO]
+    nis_n = st[ST_NIS_N]
 
     init = st[ST_INIT] == 1.0
     qw0 = st[ST_QW]
@@ -627,6 +768,9 @@ def _ekf_kernel(
             u_held = 0.0
             du_prev = 0.0
             init = True
+            if pcal_on:
+                pcal_end = tk + cfg[CFG_CALIB_S]
+                pcal_int = 0.0
             if math.isfinite(every) and not math.isfinite(t_next):
                 t_next = tk + every
         else:
@@ -654,9 +798,12 @@ def _ekf_kernel(
                 e00, e01, e02, e10, e11, e12, e20, e21, e22, c0, c1, c2, e44, dx0, dx1, dx2,
                 gb0, gb1, gb2,
             ) = discretize(cfg, x0, x1, x2, m_wear, u_step, dt)  # fmt: skip
-            if not math.isfinite(alpha0):
+            if not math.isfinite(alpha0) or math.isfinite(pcal_end):
                 dvc = r1 * x0 - r2 * x1
-                calib_int += dvc * dvc * dt
+                if not math.isfinite(alpha0):
+                    calib_int += dvc * dvc * dt
+                if math.isfinite(pcal_end):
+                    pcal_int += dvc * dvc * dt
             # random walk of m relative to its estimate (seed assumption iii)
             mref = max(x3, m_ref)
             qm = qd3 + m_walk2 * mref * mref * dt
@@ -756,6 +903,14 @@ def _ekf_kernel(
                 n_adapt += 1.0
         rv0 = rh0
         rv1 = rh1
+        y0_raw = y0
+        if skew != 0.0 and have0 and predicted:
+            # the w1 sample is taken skew seconds after the w2 sample (the filter's time): it
+            # is compared with w1 + skew dw1/dt, the slope from the model at the prior
+            ik = current[k]
+            u_now = ik if math.isfinite(ik) else u_held
+            dvp = r1 * x0 - r2 * x1
+            y0 = y0 - skew * (-x2 * r1 * dvp - cfg[CFG_B1] * x0 + cfg[CFG_KM] * u_now) * cfg[CFG_INV_J1]
         # --- update (Joseph form), with the measured channels only; an update whose NIS
         # exceeds the gate is down-weighted: S scaled by lam = NIS / gate (K / lam, and the
         # Joseph form with the matching R_eff = lam S - H P H^T)
@@ -941,11 +1096,22 @@ def _ekf_kernel(
                 a0_best = x2 * math.exp(lf)
             if tk >= calib_end:
                 alpha0 = a0_best
+        # plant calibration: the sums of the instrumental-variable regression (healthy start)
+        if math.isfinite(pcal_end):
+            if tk >= pcal_end - half_calib and not math.isfinite(st[ST_PCAL_ALPHA_MID]):
+                st[ST_PCAL_ALPHA_MID] = x2
+                st[ST_PCAL_INT_MID] = pcal_int
+            _pcal_accumulate(cfg, st, tk, y0_raw, y1, current[k], pcal_end - half_calib)
         # --- per-sample outputs
-        sg0 = math.sqrt(max(p00, 0.0))
-        sg1 = math.sqrt(max(p11, 0.0))
-        sg2 = math.sqrt(max(p22, 0.0))
-        sg3 = math.sqrt(max(p33, 0.0))
+        # covariance scale of the reported bands: NIS / dof of the last completed health window
+        # (set at the window's end below), when above 1. If the innovations exceed their
+        # predicted covariance by lam on average, the unmodelled error acting like noise, Q and
+        # R are too small by lam; scaling both leaves the gain unchanged and scales P by lam.
+        cs = math.sqrt(nis_ratio) if scale_on and nis_ratio > 1.0 else 1.0
+        sg0 = math.sqrt(max(p00, 0.0)) * cs
+        sg1 = math.sqrt(max(p11, 0.0)) * cs
+        sg2 = math.sqrt(max(p22, 0.0) * cs * cs + (alpha_floor * x2) ** 2)
+        sg3 = math.sqrt(max(p33, 0.0)) * cs
         dn = 1.0 - x2 / alpha0
         out[OUT_W1, k] = x0
         out[OUT_W2, k] = x1
@@ -1050,6 +1216,7 @@ def _ekf_kernel(
             row[RS_FILLED] = ob_filled
             row[RS_ALPHA0] = alpha0
             row[RS_A0_VAR] = a0_var
+            row[RS_COV_SCALE] = cs * cs
             for b in range(bins):
                 # oldest bin first
                 src = (ob_head + b) % bins
@@ -1093,17 +1260,30 @@ def _ekf_kernel(
             row[WIN_R] = rh0
             row[WIN_R + 1] = rh1
             row[WIN_ALPHA0] = alpha0
+            if w_sum_dof > 0.0:
+                nis_ratio = w_sum_nis / w_sum_dof
+                nis_n += 1.0
+            row[WIN_COV_SCALE] = nis_ratio if scale_on and nis_ratio > 1.0 else 1.0
             n_win += 1
             w_count = 0.0
             w_n_upd = w_sum_nis = w_sum_dof = w_n_nis_out = w_n_e_out = w_n_e = 0.0
             w_n_gated = 0.0
             c0_n = c0_sum = c0_sum2 = c0_lag = c0_nlag = 0.0
             c1_n = c1_sum = c1_sum2 = c1_lag = c1_nlag = 0.0
+        # --- end of the plant-calibration segment: stop, the caller fits and continues
+        if math.isfinite(pcal_end) and tk >= pcal_end:
+            pcal_end = np.nan
+            stop = k + 1
+            break
 
+    st[ST_PCAL_END] = pcal_end
+    st[ST_NIS_RATIO] = nis_ratio
+    st[ST_NIS_N] = nis_n
+    st[ST_PCAL_INT] = pcal_int
     st[ST_INIT] = 1.0 if init else 0.0
     st[ST_T_LAST] = t_last
     st[ST_U_HELD] = u_held
-    st[ST_N_SEEN] += n
+    st[ST_N_SEEN] += stop if stop > 0 else n
     st[ST_X] = x0
     st[ST_X + 1] = x1
     st[ST_X + 2] = x2
@@ -1169,7 +1349,7 @@ def _ekf_kernel(
     st[ST_QTL + 1] = qt1
     st[ST_N_QTL] = nq0
     st[ST_N_QTL + 1] = nq1
-    return windows[:n_win], events[:n_ev], snaps[:n_snap], 0
+    return windows[:n_win], events[:n_ev], snaps[:n_snap], stop
 
 
 # ----------------------------------------------------------------------------- prognosis

@@ -31,6 +31,8 @@ PROGNOSIS_Q = [0.0, 0.0, 0.0, 1e-12]
 SEED: dict[str, Any] = {
     "alpha0": 10.0,
     "input_model": "hold",
+    "plant_calibration": False,
+    "covariance_scaling": False,
     "noise_adaptation": False,
     "gate_sigma": None,
     "m_walk_rel": 0.0,
@@ -580,7 +582,7 @@ def test_state_errors() -> None:
     config = seed_config({})
     blob = de.dump_state(de.initial_state(config))
     with pytest.raises(StateVersionError, match="99"):
-        de.load_state(blob.replace(b'"version":2', b'"version":99'))
+        de.load_state(blob.replace(b'"version":3', b'"version":99'))
     with pytest.raises(EstimatorError):
         de.load_state(b"not json")
     with pytest.raises(EstimatorError, match="kind"):

@@ -31,7 +31,9 @@ def drive_of(seed: int, **changes: Any) -> fs.Drive:
 
 
 def run(raw: dict[str, Any], t: np.ndarray, ch: dict[str, np.ndarray]) -> tuple[Any, Any]:
-    config = de.parse_config({"rul_every_s": None, **raw})
+    """The defaults with ``raw``; the plant calibration off unless asked for (each test here
+    isolates one mechanism)."""
+    config = de.parse_config({"rul_every_s": None, "plant_calibration": False, **raw})
     return de.step(config, de.initial_state(config), Batch(t_s=t, channels=ch))
 
 
@@ -270,7 +272,135 @@ def test_split_invariance_with_the_adaptive_parts_on(square: Any) -> None:
         )
     assert [r for o in outs for r in o.rul] == list(ref.rul)
     assert [w for o in outs for w in o.health] == list(ref.health)
+    # the plant calibration ends inside the batch (1500, 4101): the same fit, the same events
+    assert any(e.kind.startswith("plant_calibrat") for e in ref.events)
+    assert sorted((e.t_s, e.kind) for o in outs for e in o.events) == sorted(
+        (e.t_s, e.kind) for e in ref.events
+    )
     np.testing.assert_array_equal(state.vector, ref_state.vector)
+
+
+def _mismatched(seed: int, **changes: Any) -> fs.Drive:
+    nominal = fs.FrictionDriveParams()
+    plant = dataclasses.replace(
+        nominal,
+        b1_nm_s=nominal.b1_nm_s * 0.85,
+        j1_kg_m2=nominal.j1_kg_m2 * 1.18,
+        j2_kg_m2=nominal.j2_kg_m2 * 0.88,
+    )
+    return drive_of(seed, m=0.01, plant=plant, mismatch=True, **changes)
+
+
+def _calibration_event(out: Any) -> dict[str, Any]:
+    events = [e for e in out.events if e.kind.startswith("plant_calibrat")]
+    assert len(events) == 1
+    return {"kind": events[0].kind, **events[0].detail}
+
+
+def test_plant_calibration_removes_the_mismatch_bias() -> None:
+    """Friction and inertia off by 12-18 %: without the calibration alpha-hat absorbs the
+    mismatch (a bias of about 1 % or more, many of its sigmas); with it B1, J1 and J2 are found
+    over the first 20 s and alpha-hat is unbiased afterwards."""
+    drive = _mismatched(507)
+    t, ch, alpha = fs.telemetry(drive, 60.0)
+    after = t > 30.0
+    _, off = run({"alpha0": drive.alpha0}, t, ch)
+    _, on = run({"alpha0": drive.alpha0, "plant_calibration": True}, t, ch)
+    err_off = np.median(np.abs(off.samples["alpha"] / alpha - 1.0)[after])
+    err_on = np.median(np.abs(on.samples["alpha"] / alpha - 1.0)[after])
+    assert err_off > 5e-3
+    assert err_on < 1e-3
+    fit = _calibration_event(on)
+    assert fit["kind"] == "plant_calibrated" and fit["applied"]
+    assert fit["b1_nm_s"] == pytest.approx(drive.plant.b1_nm_s, rel=0.01)
+    assert fit["j1_kg_m2"] == pytest.approx(drive.plant.j1_kg_m2, rel=0.02)
+    assert fit["j2_kg_m2"] == pytest.approx(drive.plant.j2_kg_m2, rel=0.02)
+    assert on.diagnosis.detail["plant_calibration"]["applied"] is True
+
+
+def test_plant_calibration_finds_and_corrects_the_channel_skew() -> None:
+    """The motor speed sampled 1.5 ms after the wheel speed: the fit finds the offset and the
+    skew-corrected update removes most of the alpha bias the skew makes."""
+    drive = drive_of(509, m=0.01, skew_s=(0.0, 1.5e-3, 0.0))
+    t, ch, alpha = fs.telemetry(drive, 60.0)
+    after = t > 30.0
+    _, off = run({"alpha0": drive.alpha0}, t, ch)
+    _, on = run({"alpha0": drive.alpha0, "plant_calibration": True}, t, ch)
+    fit = _calibration_event(on)
+    assert fit["applied"] and fit["skew_s"] == pytest.approx(1.5e-3, abs=2e-4)
+    err_off = np.median(np.abs(off.samples["alpha"] / alpha - 1.0)[after])
+    err_on = np.median(np.abs(on.samples["alpha"] / alpha - 1.0)[after])
+    assert err_on < 0.3 * err_off
+
+
+def test_plant_calibration_is_refused_without_excitation() -> None:
+    """A constant current gives no transient: the fit is refused with its reason and the
+    configured plant stays in use (filter and prognosis)."""
+    drive = drive_of(511, m=0.01)
+    t, ch, _ = fs.telemetry(drive, 30.0)
+    ch = {**ch, "current": np.full_like(ch["current"], 15.0)}
+    config = de.parse_config({"alpha0": drive.alpha0, "rul_every_s": 25.0, "rul_trajectories": 20})
+    state, out = de.step(config, de.initial_state(config), Batch(t_s=t, channels=ch))
+    fit = _calibration_event(out)
+    assert fit["kind"] == "plant_calibration_rejected" and not fit["applied"] and fit["reason"]
+    assert de.calibrated_plant(config, state.vector) is None
+    np.testing.assert_array_equal(de.plant_vector_of(config, state.vector), config.plant_vector)
+    assert all(not r.assumption["plant"]["calibrated"] for r in out.rul)
+
+
+def test_covariance_scaling_makes_the_bands_honest_when_the_noise_is_underestimated() -> None:
+    """Sensor noise 30 times the configured variance (noise estimation off): the innovations
+    exceed their covariance, the raw bands are too narrow, and the bands scaled by the last
+    window's NIS / dof hold alpha; on a consistent stream the scale stays near 1."""
+    drive = drive_of(513, m=0.01)
+    t, ch, alpha = fs.telemetry(drive, 80.0)
+    r_true = np.array(fs.PAPER_NOISE_STD) ** 2 * drive.noise_factor**2
+    after = t > 25.0
+    shares = {}
+    for scaling in (False, True):
+        _, out = run(
+            {
+                "alpha0": drive.alpha0,
+                "noise_adaptation": False,
+                "r_diag": list(r_true / 30.0),
+                "covariance_scaling": scaling,
+                "health_window_samples": 1000,
+            },
+            t,
+            ch,
+        )
+        inside = np.abs(out.samples["alpha"] - alpha) <= out.samples["alpha_3sigma"]
+        shares[scaling] = float(np.mean(inside[after]))
+        if scaling:
+            assert min(w.indicators["covariance_scale"] for w in out.health[1:]) > 5.0
+    assert shares[False] < 0.8
+    assert shares[True] > 0.97
+    _, out = run({"alpha0": drive.alpha0, "noise_adaptation": False, "r_diag": list(r_true)}, t, ch)
+    assert max(w.indicators["covariance_scale"] for w in out.health[1:]) < 2.5
+
+
+def test_version_2_state_loads_and_steps() -> None:
+    """Bytes dumped by the version-2 code (before the plant calibration) load, upgrade to the
+    current version with no calibration pending (the configured plant stays) and step."""
+    blob = (DATA / "deterioration_ekf_state_v2.bin").read_bytes()
+    assert b'"version":2' in blob
+    state = de.load_state(blob)
+    assert state.version == de.STATE_VERSION and state.initialized
+    assert state.vector.shape[0] == kern.ST_BASE_LEN
+    assert math.isnan(state.vector[kern.ST_PCAL_END])
+    config = de.parse_config(
+        {"alpha0": 10.0, "rul_every_s": 1.0, "rul_trajectories": 20, "sample_period_s": 0.001}
+    )
+    from estimators.simulators.friction_drive import simulate_friction_drive
+
+    t, ch, truth = simulate_friction_drive(5.0, 1000.0, seed=3)
+    keep = t > 3.0
+    new_state, out = de.step(
+        config, state, Batch(t_s=t[keep], channels={k: v[keep] for k, v in ch.items()})
+    )
+    assert not [e for e in out.events if e.kind.startswith("plant")]
+    err = np.abs(out.samples["alpha"] - truth["alpha"][keep])
+    assert np.max(err[-500:]) < 0.01
 
 
 def test_version_1_state_loads_and_steps() -> None:
@@ -297,3 +427,26 @@ def test_version_1_state_loads_and_steps() -> None:
     assert np.max(err[-500:]) < 0.01
     with pytest.raises(StateVersionError, match="7"):
         de.load_state(blob.replace(b'"version":1', b'"version":7'))
+
+
+def test_profile_segments_merge_within_tolerance() -> None:
+    """A recorded profile with 20 ms ramp steps: merged at 0.5 A it keeps its period and mean
+    current with far fewer segments, and the prognosis moves by little; at 0 A nothing but
+    equal currents merge (the exact profile)."""
+    durations, currents = fs.mission_profile(1.0)
+    exact = rulmod.load_segments(rulmod.ProfileLoad(durations_s=durations, current_a=currents), 3.0)
+    merged = rulmod.load_segments(
+        rulmod.ProfileLoad(durations_s=durations, current_a=currents, merge_tolerance_a=0.5), 3.0
+    )
+    assert exact is not None and merged is not None
+    assert len(exact[0]) > 500 and len(merged[0]) < len(exact[0]) / 3
+    assert merged[0].sum() == pytest.approx(exact[0].sum(), rel=1e-12)
+    assert np.dot(*merged) == pytest.approx(np.dot(*exact), rel=1e-9)
+    plant = fs.FrictionDriveParams().as_array()
+    settings = rulmod.PrognosisSettings(n_trajectories=20, failure_dn=0.5)
+    x = np.array([0.0, 0.0, 10.0, 0.01])
+    cov = np.diag([1e-6, 1e-8, 1e-8, 1e-12])
+    a = rulmod.prognose(plant, 10.0, x, cov, 3.0, exact, settings)
+    b = rulmod.prognose(plant, 10.0, x, cov, 3.0, merged, settings)
+    assert a.q50_s is not None and b.q50_s is not None
+    assert b.q50_s == pytest.approx(a.q50_s, rel=0.05)
