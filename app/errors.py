@@ -175,8 +175,9 @@ def error_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
 
 def document_errors(openapi: dict[str, Any]) -> dict[str, Any]:
     """The OpenAPI as the handlers answer: every 422 in the one error shape (FastAPI's own
-    ``HTTPValidationError`` is never sent), and a 503 on every operation that reads or writes
-    the database."""
+    ``HTTPValidationError`` is never sent), a 503 on every operation that reads or writes
+    the database, and a 410 on every operation under an aircraft (a deleted aircraft or
+    actuator answers 410 ``Gone`` until it is purged)."""
     from app.telemetry.validation import NO_CONTROL_PATTERN
 
     for path, ops in openapi.get("paths", {}).items():
@@ -194,6 +195,8 @@ def document_errors(openapi: dict[str, Any]) -> dict[str, Any]:
                 responses["422"] = error_responses(422)[422]
             if path.startswith("/v1/"):
                 responses.setdefault("503", error_responses(503)[503])
+            if path.startswith("/v1/aircraft/{tail}"):
+                responses.setdefault("410", error_responses(410)[410])
     schemas = openapi.get("components", {}).get("schemas", {})
     for name in ("HTTPValidationError", "ValidationError"):
         schemas.pop(name, None)

@@ -42,7 +42,7 @@ def decode_cursor(cursor: str | None, scope: str, order: Order, arity: int) -> l
     Raises:
         InvalidCursor: not a cursor of this list (``scope``), or issued for the other order.
     """
-    if cursor is None:
+    if not cursor:  # absent, or empty (``?cursor=``): the first page
         return None
     try:
         doc = orjson.loads(base64.urlsafe_b64decode(cursor + "=" * (-len(cursor) % 4)))

@@ -24,7 +24,7 @@ import logging
 import queue
 import threading
 from collections.abc import Callable, Sequence
-from concurrent.futures import Future
+from concurrent.futures import Future, InvalidStateError
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -118,7 +118,12 @@ class LogWriter:
                     self._queue.put(None)  # keep the stop request for after this group
                     break
                 group.append(nxt)
-            self._write(group)
+            try:
+                self._write(group)
+            except Exception as exc:  # the thread must outlive any one group
+                log.exception("the log writer failed on a group of %d appends", len(group))
+                for item in group:
+                    _settle(item.future, exc)
 
     def _write(self, group: list[_Append]) -> None:
         GROUP_SIZE.observe(len(group))
@@ -126,7 +131,7 @@ class LogWriter:
             outcomes = self._commit(group)
         except Exception as exc:
             if len(group) == 1:
-                group[0].future.set_exception(exc)
+                _settle(group[0].future, exc)
                 return
             log.warning("a group of %d appends failed (%s); committing them one by one", len(group), exc)
             for item in group:
@@ -135,14 +140,14 @@ class LogWriter:
         logged: list[int] = []
         for item, outcome in zip(group, outcomes, strict=True):
             if isinstance(outcome, DomainError):
-                item.future.set_exception(outcome)
+                _settle(item.future, outcome)
             else:
                 if not outcome.replayed:
                     logged.append(item.actuator_pk)
                     if self.recent is not None:
                         b = item.batch
                         self.recent.put(item.actuator_pk, outcome.seq, b.t_s, b.channels, b.end_of_run)
-                item.future.set_result(outcome)
+                _settle(item.future, outcome)
         if logged and self.on_logged is not None:
             try:
                 self.on_logged(sorted(set(logged)))
@@ -170,3 +175,18 @@ class LogWriter:
                 if fresh:
                     repository.notify(s, self.notify_channel, f"{self.origin} " + ",".join(map(str, fresh)))
         return outcomes
+
+
+def _settle(future: Future[Ack], outcome: Ack | BaseException) -> None:
+    """Resolve an append's future unless it is already done: its waiter may have gone (a
+    WebSocket dropped mid-frame cancels it). The append itself stays committed; a sender that
+    never saw the ack resends it and gets the first answer (idempotent)."""
+    if future.done():
+        return
+    try:
+        if isinstance(outcome, BaseException):
+            future.set_exception(outcome)
+        else:
+            future.set_result(outcome)
+    except InvalidStateError:  # cancelled between the check and here
+        pass

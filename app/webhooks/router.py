@@ -59,7 +59,7 @@ def list_webhooks(s: ReadSessionDep, p: AdminDep) -> schemas.WebhookList:
 
 
 @router.get(
-    "/webhooks/{webhook_id}",
+    "/webhooks/{webhook_id:int}",
     response_model=schemas.WebhookPublic,
     responses=error_responses(401, 403, 404, 422),
 )
@@ -70,7 +70,7 @@ def get_webhook(webhook_id: WebhookId, s: ReadSessionDep, p: AdminDep) -> schema
 
 
 @router.delete(
-    "/webhooks/{webhook_id}", status_code=204, responses=error_responses(401, 403, 404, 422)
+    "/webhooks/{webhook_id:int}", status_code=204, responses=error_responses(401, 403, 404, 422)
 )
 def delete_webhook(webhook_id: WebhookId, s: WriteSessionDep, p: AdminDep) -> Response:
     """Remove a subscription, its pending deliveries and its delivery log."""
@@ -79,7 +79,7 @@ def delete_webhook(webhook_id: WebhookId, s: WriteSessionDep, p: AdminDep) -> Re
 
 
 @router.post(
-    "/webhooks/{webhook_id}/test",
+    "/webhooks/{webhook_id:int}/test",
     status_code=202,
     response_model=schemas.DeliveryPublic,
     responses=error_responses(401, 403, 404, 422),
@@ -97,7 +97,7 @@ def test_webhook(
 
 
 @router.get(
-    "/webhooks/{webhook_id}/deliveries",
+    "/webhooks/{webhook_id:int}/deliveries",
     response_model=schemas.DeliveryList,
     responses=error_responses(401, 403, 404, 422),
 )

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import numpy as np
@@ -241,8 +242,13 @@ def test_metrics_and_probes(api: Api) -> None:
     s = make_series(300)
     api.send_arrow("N1", "ema1", "m", s.t_s, {"current": s.current, "voltage": s.voltage})
     assert api.c.get("/healthz").json() == {"status": "ok"}
-    r = api.c.get("/readyz")
+    # Ready once every kind's kernels are (minutes on a cold numba cache: they compile).
+    deadline = time.monotonic() + 280
+    while (r := api.c.get("/readyz")).status_code == 503 and time.monotonic() < deadline:
+        assert r.json()["checks"]["schema"] == "ok" and r.json()["checks"]["kernels"] != "ok"
+        time.sleep(0.2)
     assert r.status_code == 200 and r.json()["checks"]["schema"] == "ok"
+    assert {k["status"] for k in r.json()["kernels"].values()} == {"ready"}
     # Default FLEETHEALTH_METRICS_ACCESS=key: a key with the read scope is needed.
     assert api.c.get("/metrics").status_code == 401
     text = api.get("/metrics").text

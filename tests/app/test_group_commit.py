@@ -48,6 +48,34 @@ class _Groups:
         writer._commit = counting  # type: ignore[method-assign]
 
 
+def test_an_append_whose_waiter_went_away_is_committed_and_the_writer_goes_on(api_noproc: Api, db_url: str) -> None:
+    """A WebSocket dropped mid-frame cancels its append's future: the append still commits and
+    the writer thread keeps serving the next ones (it used to die on the cancelled future)."""
+    api_noproc.setup_actuator(act="a")
+    s = make_series(200, seed=6)
+    db = Database(db_url)
+    pks = _pks(db)
+    writer = LogWriter(db)
+    writer.start()
+    try:
+        lock_holder = db.write()
+        session = lock_holder.__enter__()
+        session.get(Actuator, pks["a"], with_for_update=True)
+        if db.is_sqlite:
+            session.connection()  # BEGIN IMMEDIATE: the file's write lock
+        gone = writer.submit(pks["a"], _batch("a0", s.t_s[0:100], s))
+        assert gone.cancel()
+        lock_holder.__exit__(None, None, None)
+        later = writer.submit(pks["a"], _batch("a1", s.t_s[100:200], s))
+        assert later.result(30).seq == 2
+        # The sender that never saw its ack resends: the first answer, logged once.
+        again = writer.submit(pks["a"], _batch("a0", s.t_s[0:100], s)).result(30)
+        assert again.seq == 1 and again.replayed
+    finally:
+        writer.stop()
+    db.dispose()
+
+
 def test_queued_appends_commit_together_and_a_refused_one_spoils_nothing(api_noproc: Api, db_url: str) -> None:
     for act in ("a", "b"):
         api_noproc.setup_actuator(act=act)
@@ -83,9 +111,10 @@ def test_queued_appends_commit_together_and_a_refused_one_spoils_nothing(api_nop
         writer.stop()
     assert [a.seq for a in acks if a is not None] == [1, 2, 2, 1]
     assert acks[4] is not None and acks[4].replayed
-    # Six appends, at most two transactions: the five queued while the first waited for the
-    # lock went together (with the first, when it was taken off the queue after them).
-    assert sum(groups.sizes) == 6 and len(groups.sizes) <= 2 and groups.sizes[-1] >= 5
+    # Six appends, at most two transactions: those queued while the writer waited for the lock
+    # went together (how many the writer had taken before it blocked is a race; one by one
+    # they would take six).
+    assert sum(groups.sizes) == 6 and len(groups.sizes) <= 2
     with db.read() as session:
         rows = session.execute(select(TelemetryBatch.batch_id, TelemetryBatch.seq).order_by(TelemetryBatch.id)).all()
         logged = {a.actuator_id: a.last_logged_seq for a in session.scalars(select(Actuator))}
