@@ -138,7 +138,7 @@ def due(session: Session, now: datetime, limit: int, *, lock: bool) -> list[DueD
             body=d.body,
             attempts=d.attempts,
         )
-        for d, sub in session.execute(stmt).tuples()
+        for d, sub in session.execute(stmt)
     ]
 
 
