@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import uuid
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,16 +30,12 @@ def _pg_available() -> str | None:
 _PG_PROBLEM = _pg_available()
 
 
-@pytest.fixture(params=["sqlite", pytest.param("postgres", marks=pytest.mark.postgres)])
-def db_url(request: pytest.FixtureRequest, tmp_path) -> Iterator[str]:  # type: ignore[no-untyped-def]
-    """A migrated, empty database: a SQLite file, or a fresh schema in PostgreSQL."""
+@contextmanager
+def migrated_pg_schema() -> Iterator[str]:
+    """A fresh schema in the test PostgreSQL, migrated to head, dropped afterwards (the test is
+    skipped, or failed with FLEETHEALTH_REQUIRE_PG=1, when PostgreSQL is not reachable)."""
     from app.migrate import upgrade
 
-    if request.param == "sqlite":
-        url = f"sqlite:///{tmp_path / 'fleethealth.db'}"
-        upgrade(url)
-        yield url
-        return
     if _PG_PROBLEM:
         if REQUIRE_PG:
             pytest.fail(_PG_PROBLEM)
@@ -55,6 +52,20 @@ def db_url(request: pytest.FixtureRequest, tmp_path) -> Iterator[str]:  # type: 
         with admin.begin() as c:
             c.execute(text(f'DROP SCHEMA "{schema}" CASCADE'))
         admin.dispose()
+
+
+@pytest.fixture(params=["sqlite", pytest.param("postgres", marks=pytest.mark.postgres)])
+def db_url(request: pytest.FixtureRequest, tmp_path) -> Iterator[str]:  # type: ignore[no-untyped-def]
+    """A migrated, empty database: a SQLite file, or a fresh schema in PostgreSQL."""
+    from app.migrate import upgrade
+
+    if request.param == "sqlite":
+        url = f"sqlite:///{tmp_path / 'fleethealth.db'}"
+        upgrade(url)
+        yield url
+        return
+    with migrated_pg_schema() as url:
+        yield url
 
 
 @dataclass(frozen=True)

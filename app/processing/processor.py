@@ -229,13 +229,13 @@ class Processor:
         number of batches applied."""
         applied = 0
         replayed: dict[int, set[str]] = {}
-        todo = sorted(set(actuator_pks))
+        waiting = sorted(set(actuator_pks))
         cap = self.settings.processor_max_streams_per_txn
-        while todo and not self._stop.is_set():
-            part, todo = todo[:cap], todo[cap:]
+        while waiting and not self._stop.is_set():
+            part, waiting = waiting[:cap], waiting[cap:]
             again, n = self._apply_group(part, replayed)
             applied += n
-            todo = sorted(set(todo) | set(again))
+            waiting = sorted(set(waiting) | set(again))
         return applied
 
     def _apply_group(self, pks: list[int], replayed: dict[int, set[str]]) -> tuple[list[int], int]:

@@ -20,6 +20,7 @@ the transaction, so it reaches worker processes exactly when the batches become 
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import queue
 import threading
@@ -183,10 +184,8 @@ def _settle(future: Future[Ack], outcome: Ack | BaseException) -> None:
     never saw the ack resends it and gets the first answer (idempotent)."""
     if future.done():
         return
-    try:
+    with contextlib.suppress(InvalidStateError):  # cancelled between the check and here
         if isinstance(outcome, BaseException):
             future.set_exception(outcome)
         else:
             future.set_result(outcome)
-    except InvalidStateError:  # cancelled between the check and here
-        pass

@@ -11,7 +11,6 @@ import signal
 import subprocess
 import threading
 import time
-import uuid
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -21,10 +20,9 @@ import numpy as np
 import orjson
 import pytest
 from fleethealth_client import FleetHealthClient
-from sqlalchemy import create_engine, text
 from websockets.asyncio.client import connect
 
-from tests.conftest import _PG_PROBLEM, PG_URL, REQUIRE_PG, make_series
+from tests.conftest import make_series, migrated_pg_schema
 from tests.e2e.conftest import E2E_KEY, FLEETHEALTH, ROOT, LiveServer
 
 pytestmark = [pytest.mark.e2e, pytest.mark.postgres]
@@ -80,24 +78,8 @@ class Worker:
 @pytest.fixture
 def pg_schema_url() -> Iterator[str]:
     """A fresh, migrated schema in the test PostgreSQL."""
-    from app.migrate import upgrade
-
-    if _PG_PROBLEM:
-        if REQUIRE_PG:
-            pytest.fail(_PG_PROBLEM)
-        pytest.skip(_PG_PROBLEM)
-    schema = "t_" + uuid.uuid4().hex[:12]
-    admin = create_engine(PG_URL)
-    with admin.begin() as c:
-        c.execute(text(f'CREATE SCHEMA "{schema}"'))
-    url = f"{PG_URL}?options=-csearch_path%3D{schema}"
-    try:
-        upgrade(url)
+    with migrated_pg_schema() as url:
         yield url
-    finally:
-        with admin.begin() as c:
-            c.execute(text(f'DROP SCHEMA "{schema}" CASCADE'))
-        admin.dispose()
 
 
 @pytest.fixture
