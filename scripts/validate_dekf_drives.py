@@ -12,9 +12,11 @@ from __future__ import annotations
 
 import argparse
 import math
+import pickle
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -160,11 +162,27 @@ def run_drive(drive: fs.Drive, data: fs.DriveData, alpha0_known: bool) -> DriveR
 
 
 def simulate_all(
-    n: int, base_seed: int = BASE_SEED, log: Callable[[str], None] = print
+    n: int,
+    base_seed: int = BASE_SEED,
+    log: Callable[[str], None] = print,
+    cache: Path | None = None,
 ) -> list[tuple[fs.Drive, fs.DriveData]]:
+    """The drives and their telemetry; with ``cache`` a directory, each drive is simulated once
+    and kept there (the generator's RK4 at 0.1 ms is most of a run's time)."""
     drives = []
     for i in range(n):
-        drive, data = fs.draw_failing_drive(base_seed + i, max_s=MAX_LIFE_S, min_life_s=MIN_LIFE_S)
+        path = cache / f"drive_{base_seed + i}.pkl" if cache is not None else None
+        if path is not None and path.exists():
+            with path.open("rb") as f:
+                drive, data = pickle.load(f)
+        else:
+            drive, data = fs.draw_failing_drive(
+                base_seed + i, max_s=MAX_LIFE_S, min_life_s=MIN_LIFE_S
+            )
+            if path is not None:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                with path.open("wb") as f:
+                    pickle.dump((drive, data), f)
         drives.append((drive, data))
         log(
             f"drive {i}: {drive.load} {drive.rate_hz:g} Hz noise x{drive.noise_factor:.0f} "
@@ -194,14 +212,21 @@ def summarize(results: list[DriveResult]) -> dict[str, float]:
         "ok_inconsistent": float(sum(r.ok_inconsistent for r in results)),
         "flaps_per_100s": 100.0 * sum(r.flaps for r in results) / duration if duration else math.nan,
         "no_median": float(np.isinf(errs).mean()) if errs.size else math.nan,
+        "unknown": unknown_share(results),
     }
+
+
+def unknown_share(results: list[DriveResult]) -> float:
+    """Share of all prognoses (whatever the true Dn) served ``unknown``."""
+    total = sum(sum(r.served.values()) for r in results)
+    return sum(r.served.get("unknown", 0) for r in results) / total if total else math.nan
 
 
 def table(rows: list[tuple[str, list[DriveResult]]]) -> list[str]:
     out = [
         "| condition | drives | prognoses | median abs RUL error | 90th pct | coverage 5-95 % | "
-        "no median | alpha in 3 sigma | ok while inconsistent | flaps / 100 s |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "no median | alpha in 3 sigma | ok while inconsistent | flaps / 100 s | served unknown |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for label, res in rows:
         if not res:
@@ -211,7 +236,7 @@ def table(rows: list[tuple[str, list[DriveResult]]]) -> list[str]:
             f"| {label} | {int(s['drives'])} | {int(s['prognoses'])} | {_fmt(s['median_err'])} % | "
             f"{_fmt(s['p90_err'])} % | {_fmt(s['coverage'])} % | {_fmt(s['no_median'])} % | "
             f"{_fmt(s['alpha_in'])} % | {int(s['ok_inconsistent'])} | "
-            f"{_fmt(s['flaps_per_100s'], '.2f', 1.0)} |"
+            f"{_fmt(s['flaps_per_100s'], '.2f', 1.0)} | {_fmt(s['unknown'], '.0f')} % |"
         )
     return out
 
@@ -244,9 +269,14 @@ def by_condition(results: list[DriveResult]) -> list[tuple[str, list[DriveResult
     return rows
 
 
-def drives_section(n: int, base_seed: int = BASE_SEED, log: Callable[[str], None] = print) -> list[str]:
+def drives_section(
+    n: int,
+    base_seed: int = BASE_SEED,
+    log: Callable[[str], None] = print,
+    cache: Path | None = None,
+) -> list[str]:
     t0 = time.time()
-    drives = simulate_all(n, base_seed, log)
+    drives = simulate_all(n, base_seed, log, cache)
     t_sim = time.time() - t0
     a_res, b_res = [], []
     for i, (drive, data) in enumerate(drives):
@@ -296,7 +326,8 @@ def drives_section(n: int, base_seed: int = BASE_SEED, log: Callable[[str], None
         "the latest health window failed its consistency test. Flaps: changes of the served "
         "status between successive prognoses other than between graded levels (ok, watch, "
         "alert, failed) across which the truth's own level changed, and other than the first "
-        "exit from `learning` (the convergence).",
+        "exit from `learning` (the convergence). Served unknown: share of all prognoses "
+        "(any true Dn) served `unknown`.",
         "",
         "#### A: alpha0 given",
         "",
@@ -440,8 +471,9 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--drives", type=int, default=8)
     ap.add_argument("--base-seed", type=int, default=BASE_SEED)
+    ap.add_argument("--cache", type=Path, default=None, help="directory keeping simulated drives")
     args = ap.parse_args()
-    print("\n".join(drives_section(args.drives, args.base_seed)))
+    print("\n".join(drives_section(args.drives, args.base_seed, cache=args.cache)))
     return 0
 
 

@@ -597,6 +597,9 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--scenario-seeds", type=int, default=5)
     ap.add_argument("--drives", type=int, default=60)
+    ap.add_argument(
+        "--cache", type=Path, default=None, help="directory keeping the simulated drives"
+    )
     args = ap.parse_args()
     de.warm_up()
     lines = [
@@ -619,7 +622,9 @@ def main() -> int:
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     from validate_dekf_drives import drives_section
 
-    lines += drives_section(args.drives, log=lambda msg: print(msg, flush=True))
+    lines += drives_section(
+        args.drives, log=lambda msg: print(msg, flush=True), cache=args.cache
+    )
     lines += seed_scenario_section(args.scenario_seeds)
     lines += seed_rul_example()
     lines += rtf_section(args.runs, args.seed)
