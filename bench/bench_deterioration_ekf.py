@@ -154,6 +154,18 @@ def rul_cases() -> list[tuple[str, np.ndarray, np.ndarray, tuple[np.ndarray, np.
     cases.append(
         (f"mission profile ({len(segments[0])} segments per 14 s)", state.x, state.P, segments, 10.0)
     )
+    # a random telegraph read as two levels and its dwells (32 segments per period)
+    rng = np.random.default_rng(5)
+    n_bins = 1500
+    level = np.cumsum(rng.random(n_bins) < 0.02 * 2) % 2
+    dwells = rul.dwell_load(np.full(n_bins, 0.02), np.where(level == 1, 20.0, 0.0), 16, 0.05)
+    assert dwells is not None
+    cases.append(
+        (
+            f"observed load read as dwells ({dwells.durations_s.shape[0]} segments per period)",
+            state.x, state.P, (dwells.durations_s, dwells.currents_a), 10.0,
+        )
+    )  # fmt: skip
     merged = rul.ProfileLoad(durations_s=durations, current_a=currents, merge_tolerance_a=0.5)
     segments = rul.load_segments(merged, float(t[-1]))
     assert segments is not None
@@ -172,7 +184,8 @@ def main() -> None:
     t, ch, _ = simulate_friction_drive(n_long / 1000.0, 1000.0, m=0.0005, seed=1)
     rows: list[tuple[str, str]] = []
     for label, extra in (
-        ("defaults (interval input, noise estimation, gating, projection)", {"alpha0": 10.0}),
+        ("defaults (edge input, noise estimation, gating, projection)", {"alpha0": 10.0}),
+        ("defaults, interval input", {"alpha0": 10.0, "input_model": "interval"}),
         ("defaults, alpha0 estimated", {"alpha0": None}),
         ("seed Q, F44 = 0", {}),
         ("prognosis tuning", {"q_diag": PROGNOSIS_Q}),

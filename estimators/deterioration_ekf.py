@@ -92,7 +92,7 @@ from estimators.kernels import dekf_kernels as kern
 from estimators.simulators.friction_drive import FrictionDriveParams
 
 NAME = "deterioration_ekf"
-STATE_VERSION = 3
+STATE_VERSION = 4
 CHANNELS = ("current", "motor_speed", "wheel_speed")
 STATE_NAMES = ("w1", "w2", "alpha", "m")
 SAMPLE_OUTPUTS = (
@@ -184,12 +184,14 @@ class DekfConfig(EstimatorConfigModel):
     current_var: NonNegativeFloat = Field(
         default=0.0, description="variance of the current measurement, A^2 (propagated through Gamma B)"
     )
-    input_model: Literal["interval", "hold"] = Field(
-        default="interval",
-        description="current over a sample interval: 'interval' = the mean of the two samples "
-        "bounding it, with the variance of an edge at an unknown instant ((dI)^2 / 12, plus "
-        "input_timing_s); 'hold' = the earlier sample held (the seed's eq. 16, exact only when "
-        "the current changes on the sample grid)",
+    input_model: Literal["edge", "interval", "hold"] = Field(
+        default="edge",
+        description="current over a sample interval: 'edge' = a change between two samples is a "
+        "step at an unknown instant, uniform over the interval, whose response has an exact "
+        "mean and covariance (changes too small to matter: as 'interval'); 'interval' = the mean "
+        "of the two samples bounding it, with the rank-one variance (dI)^2 / 12 of the edge "
+        "instant; both plus input_timing_s; 'hold' = the earlier sample held (the seed's eq. "
+        "16, exact only when the current changes on the sample grid)",
     )
     input_timing_s: NonNegativeFloat = Field(
         default=0.001,
@@ -411,7 +413,7 @@ def _kernel_config(config: DekfConfig) -> FloatArray:
     cfg[kern.CFG_INV_J1] = 1.0 / config.plant.j1_kg_m2
     cfg[kern.CFG_INV_J2] = 1.0 / config.plant.j2_kg_m2
     cfg[kern.CFG_DT_NOMINAL] = config.sample_period_s or 0.0
-    cfg[kern.CFG_INPUT_INTERVAL] = 1.0 if config.input_model == "interval" else 0.0
+    cfg[kern.CFG_INPUT_INTERVAL] = {"edge": 2.0, "interval": 1.0, "hold": 0.0}[config.input_model]
     cfg[kern.CFG_INPUT_TIMING] = config.input_timing_s
     cfg[kern.CFG_ADAPT_MEMORY] = config.noise_memory_s if config.noise_adaptation else 0.0
     g1, g2 = gate_thresholds(config.gate_sigma)
@@ -506,6 +508,13 @@ def _apply_calibration(
         vec[kern.ST_QW] = 0.0
         vec[kern.ST_QW + 1] = 0.0
         vec[kern.ST_N_ADAPT] = 0.0
+        # the health window under way starts afresh: its innovations so far are the wrong
+        # plant's (the verdict restarts in step(), in time order with the windows)
+        vec[kern.ST_W_COUNT] = 0.0
+        vec[kern.ST_W_N_UPD : kern.ST_W_N_E + 1] = 0.0
+        vec[kern.ST_W_CH : kern.ST_W_CH + 2 * kern.CH_LEN] = 0.0
+        vec[kern.ST_W_N_GATED] = 0.0
+        vec[kern.ST_NU_PREV : kern.ST_NU_PREV + 2] = math.nan
         if config.alpha0 is None:
             lf = min(m_hat * float(vec[kern.ST_PCAL_INT_MID]), kern.CALIB_MAX_LOG)  # eq. 7
             vec[kern.ST_ALPHA0] = fit.alpha * math.exp(lf)
@@ -667,6 +676,8 @@ _FRESH_NAN = (
     kern.ST_HIST_VAR,
     kern.ST_RUL_STATUS,
     *range(kern.ST_Y_HIST, kern.ST_Y_HIST + 6),
+    kern.ST_Y_RES,
+    kern.ST_Y_RES + 1,
     kern.ST_A0_BEST,
     kern.ST_A0_VAR,
     kern.ST_PCAL_END,
@@ -707,7 +718,7 @@ def _upgrade_v2(doc: dict[str, Any]) -> dict[str, Any]:
     """Version 2 -> 3: the plant-calibration entries are inserted before the observed-load
     ring, as a fresh state has them. The end of the calibration segment stays NaN: the stream
     is past its start, so no calibration runs and the configured plant stays in use."""
-    return _insert_fresh(doc, kern.ST_BASE_LEN_V2, kern.ST_BASE_LEN, 3)
+    return _insert_fresh(doc, kern.ST_BASE_LEN_V2, kern.ST_BASE_LEN_V3, 3)
 
 
 def _insert_fresh(doc: dict[str, Any], old_len: int, new_len: int, version: int) -> dict[str, Any]:
@@ -724,7 +735,19 @@ def _insert_fresh(doc: dict[str, Any], old_len: int, new_len: int, version: int)
     return out
 
 
-_UPGRADES: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {1: _upgrade_v1, 2: _upgrade_v2}
+def _upgrade_v3(doc: dict[str, Any]) -> dict[str, Any]:
+    """Version 3 -> 4: the entries of the one-step-residual noise estimate (the last posterior
+    residuals, NaN, and their running medians, not started) are inserted before the
+    observed-load ring; until they have samples the third-difference estimate alone is used,
+    as before."""
+    return _insert_fresh(doc, kern.ST_BASE_LEN_V3, kern.ST_BASE_LEN, 4)
+
+
+_UPGRADES: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {
+    1: _upgrade_v1,
+    2: _upgrade_v2,
+    3: _upgrade_v3,
+}
 
 
 def load_state(data: bytes) -> DekfState:
@@ -1020,7 +1043,7 @@ def _predicted_rate(
 
 
 def _record_rate_error(
-    vec: FloatArray, t_s: float, ell: float, var_ell: float, rate_now: float
+    vec: FloatArray, t_s: float, ell: float, var_ell: float, rate_now: float, renewal_var_s: float = 0.0
 ) -> None:
     """Compare the wear (``-d ln alpha``) realized since the previous prognosis with the
     predicted one (trapezoid of the rates predicted then and now under the assumed load, so
@@ -1038,7 +1061,11 @@ def _record_rate_error(
     if not (math.isfinite(realized) and math.isfinite(var_ell)):
         return
     err = (realized - predicted) / predicted
-    explained = (var_ell + vec[kern.ST_HIST_VAR]) / (predicted * predicted)
+    # the filter's variances of both ln(alpha-hat), and the random cycles of a switching load
+    # over the span (its share of the spread is already in the prognosis' interval)
+    explained = (var_ell + vec[kern.ST_HIST_VAR]) / (predicted * predicted) + renewal_var_s / (
+        t_s - t0
+    )
     # exponential forgetting: the record follows changes (a converging m-hat early on, a
     # changing load) over about 1 / (1 - RECORD_FORGETTING) comparisons
     for i in (
@@ -1114,11 +1141,14 @@ def prognosis_at(config: DekfConfig, row: FloatArray, vec: FloatArray) -> RulEst
             kern.ST_ERR_REAL, kern.ST_ERR_PRED,
         ):  # fmt: skip
             vec[i] = 0.0
-    segments = rulmod.load_segments(
-        config.rul_load, t_s, _observed_profile(row, config.observed_bins)
-    )
+    observed = _observed_profile(row, config.observed_bins)
+    segments = rulmod.load_segments(config.rul_load, t_s, observed)
     if segments is None or not math.isfinite(alpha0):
         return None
+    dwells: rulmod.DwellLoad | None = None
+    load = config.rul_load
+    if isinstance(load, rulmod.ObservedLoad) and load.model == "dwells" and observed is not None:
+        dwells = rulmod.dwell_load(observed[0], observed[1], load.dwell_pairs, load.merge_tolerance_a)
     c = config.bound_sigma
     cov_scale = float(row[kern.RS_COV_SCALE]) if config.covariance_scaling else 1.0
     # the calibrated alpha's own uncertainty is a floor no later data reduce (a plant error)
@@ -1136,7 +1166,9 @@ def prognosis_at(config: DekfConfig, row: FloatArray, vec: FloatArray) -> RulEst
     plant = plant_vector_of(config, vec, t_s)
     rate_now = _predicted_rate(config, plant, segments, x[2], x[3]) if converged else math.nan
     if config.rul_model_error:
-        _record_rate_error(vec, t_s, ell, var_ell, rate_now)
+        _record_rate_error(
+            vec, t_s, ell, var_ell, rate_now, dwells.renewal_var_s if dwells is not None else 0.0
+        )
     extra_var = rate_error_var(vec) if config.rul_model_error else 0.0
     ratio = rate_ratio(vec) if config.rul_model_error else 1.0
     # an estimated alpha0 moves the failure level alpha0 (1 - Dn_f): a relative error eps of
@@ -1145,6 +1177,10 @@ def prognosis_at(config: DekfConfig, row: FloatArray, vec: FloatArray) -> RulEst
     to_go = math.log(x[2] / (alpha0 * (1.0 - config.rul_failure_dn))) if x[2] > 0.0 else 0.0
     if math.isfinite(a0_var) and a0_var > 0.0 and to_go > 0.0:
         extra_var += a0_var / (to_go * to_go)
+    # a random switching load: the sampling error of the observed mean cycle, and (per
+    # trajectory, below) the randomness of the future cycles
+    if dwells is not None:
+        extra_var += dwells.estimate_rel_var
     settings = config.prognosis
     result = rulmod.prognose(
         plant,
@@ -1156,6 +1192,7 @@ def prognosis_at(config: DekfConfig, row: FloatArray, vec: FloatArray) -> RulEst
         settings,
         log_time_var=extra_var,
         walk_rel_var_per_s=config.m_walk_rel**2,
+        renewal_var_s=dwells.renewal_var_s if dwells is not None else 0.0,
     )
     status, reasons = serving_status(
         vec, config, _none_if_nan(dn), result.q05_s, float(x[3]), float(cov[3, 3])
@@ -1193,6 +1230,19 @@ def prognosis_at(config: DekfConfig, row: FloatArray, vec: FloatArray) -> RulEst
         "reached_fraction": result.reached_fraction,
         "bounds_sigma": c,
     }
+    if isinstance(load, rulmod.ObservedLoad) and load.model == "dwells":
+        assumption["dwells"] = (
+            {
+                "low_a": dwells.low_a,
+                "high_a": dwells.high_a,
+                "observed": {"low": dwells.dwells[0], "high": dwells.dwells[1]},
+                "cycle_mean_s": dwells.cycle_mean_s,
+                "cycle_std_s": math.sqrt(dwells.cycle_var_s2),
+                "estimate_rel_std": math.sqrt(dwells.estimate_rel_var),
+            }
+            if dwells is not None
+            else "too few completed dwells at two levels: the ring is repeated"
+        )
     if result.reached_fraction < 1.0:
         assumption["not_reached"] = (
             f"{100.0 * (1.0 - result.reached_fraction):.1f} % of the trajectories do not reach "
@@ -1440,9 +1490,17 @@ def step(config: DekfConfig, state: DekfState, batch: Batch) -> tuple[DekfState,
     # windows and prognoses in time order (a window ending at a prognosis time comes first)
     queue: list[tuple[float, int, int]] = [(w.t_end_s, 0, i) for i, (w, _) in enumerate(windows)]
     queue.extend((float(row[kern.RS_T]), 1, i) for i, row in enumerate(snap_rows))
+    # an applied plant calibration restarts the consistency verdict: the windows before it
+    # tested the configured plant, not the one in use
+    queue.extend((e.t_s, 2, 0) for e in cal_events if e.kind == "plant_calibrated")
     queue.sort()
     estimates: list[RulEstimate] = []
     for _, what, i in queue:
+        if what == 2:
+            vec[kern.ST_VERDICT] = math.nan
+            vec[kern.ST_GOOD_STREAK] = 0.0
+            vec[kern.ST_BAD_STREAK] = 0.0
+            continue
         if what == 0:
             window, consistent = windows[i]
             _apply_verdict(vec, consistent, config.status_hysteresis_windows)

@@ -97,16 +97,32 @@ class ProfileLoad(EstimatorConfigModel):
 
 
 class ObservedLoad(EstimatorConfigModel):
-    """The recently applied current, repeated: the filter bins the held current over
-    ``bin_samples`` stream samples into a ring of ``bins`` bins; at a prognosis the ring (oldest
-    bin first) is one period of the future load, starting now. Consecutive bins whose currents
-    differ by at most ``merge_tolerance_a`` from the first of their run are merged."""
+    """The recently applied current: the filter bins the held current over ``bin_samples``
+    stream samples into a ring of ``bins`` bins. ``model`` says how the ring becomes the future
+    load:
+
+    * ``"repeat"``: the ring (oldest bin first) is one period of the future load, starting now.
+      Consecutive bins whose currents differ by at most ``merge_tolerance_a`` from the first of
+      their run are merged.
+    * ``"dwells"``: a load switching between two levels with random dwells (:func:`dwell_load`):
+      the levels and the empirical distribution of the completed dwells at each level are read
+      from the ring; the future period holds ``dwell_pairs`` dwells per level at the quantiles
+      of that distribution, and the prognosis' interval carries the randomness of the future
+      dwells and the sampling error of the observed ones."""
 
     kind: Literal["observed"] = Field(default="observed", description="load law")
     bin_samples: StrictInt = Field(default=20, ge=1, le=10_000_000, description="stream samples per bin")
     bins: StrictInt = Field(default=200, ge=1, le=10_000, description="bins in the ring (one period)")
     merge_tolerance_a: FiniteFloat = Field(
         default=0.05, ge=0.0, description="largest current difference merged into one segment, A"
+    )
+    model: Literal["repeat", "dwells"] = Field(
+        default="repeat",
+        description="'repeat': the ring is one period of the future load; 'dwells': two levels "
+        "with the observed dwell distribution (random switching loads)",
+    )
+    dwell_pairs: StrictInt = Field(
+        default=16, ge=2, le=256, description="dwells per level in the future period ('dwells')"
     )
 
 
@@ -176,6 +192,110 @@ def _rotate(
     return np.array([d[i] for i in keep]), np.array([c[i] for i in keep])
 
 
+#: bins within this share of the level difference of a level count as at that level
+DWELL_EDGE_SHARE = 0.05
+#: fewest completed dwells at each level for the dwell model
+MIN_DWELLS = 3
+
+
+@dataclass(frozen=True)
+class DwellLoad:
+    """A two-level switching load read from the observed current (:func:`dwell_load`).
+
+    Attributes:
+        durations_s, currents_a: one period of the future load from now (the level in force
+            first), ``pairs`` dwells per level at the quantiles of the observed dwells.
+        low_a, high_a: the levels.
+        dwells: completed dwells observed at the low and the high level.
+        cycle_mean_s, cycle_var_s2: mean and variance of a cycle (a low plus a high dwell).
+        estimate_rel_var: relative variance of the mean cycle estimated from the observed
+            dwells, ``cycle_var / (n cycle_mean^2)``, n the fewer of the two counts.
+        renewal_var_s: the relative variance of the number of cycles in a future span T is
+            ``renewal_var_s / T`` (renewal theory: ``T var / mean^3`` cycles^2 over
+            ``(T / mean)^2``), i.e. ``cycle_var / cycle_mean``.
+    """
+
+    durations_s: FloatArray
+    currents_a: FloatArray
+    low_a: float
+    high_a: float
+    dwells: tuple[int, int]
+    cycle_mean_s: float
+    cycle_var_s2: float
+    estimate_rel_var: float
+    renewal_var_s: float
+
+
+def dwell_load(
+    durations: FloatArray, currents: FloatArray, pairs: int, tolerance_a: float
+) -> DwellLoad | None:
+    """Two-level switching load from binned current (oldest bin first).
+
+    The levels are the duration-weighted means of the bins within ``DWELL_EDGE_SHARE`` of the
+    5 % and 95 % quantiles of the bin currents; a bin between them holds an edge and the share
+    ``(I - low) / (high - low)`` of its time at the high level (exact for one edge in the bin).
+    Walking the bins, the time at the level in force comes first, then the rest starts the
+    next dwell. The first and last dwells are censored by the ring and dropped. None when the
+    two levels are within ``tolerance_a`` or fewer than ``MIN_DWELLS`` dwells completed at
+    either level. The future period alternates, from the level in force now, ``pairs`` dwells
+    per level at the empirical quantiles ``(i + 0.5) / pairs``, the low dwells in a fixed
+    low-discrepancy order (so that long and short dwells are not paired by rank)."""
+    if durations.shape[0] < 4:
+        return None
+    lo_q, hi_q = np.quantile(currents, [0.05, 0.95])
+    span = hi_q - lo_q
+    if not span > tolerance_a:
+        return None
+    share = np.clip((currents - lo_q) / span, 0.0, 1.0)
+    share = np.where(share <= DWELL_EDGE_SHARE, 0.0, np.where(share >= 1.0 - DWELL_EDGE_SHARE, 1.0, share))
+    at_lo = share == 0.0
+    at_hi = share == 1.0
+    if not (at_lo.any() and at_hi.any()):
+        return None
+    low = float(np.dot(durations[at_lo], currents[at_lo]) / durations[at_lo].sum())
+    high = float(np.dot(durations[at_hi], currents[at_hi]) / durations[at_hi].sum())
+    runs: list[tuple[bool, float]] = []
+    state = bool(share[0] >= 0.5)
+    run = 0.0
+    for d, f in zip(durations, share, strict=True):
+        here = d * (f if state else 1.0 - f)
+        other = d - here
+        run += here
+        if other > DWELL_EDGE_SHARE * d:
+            runs.append((state, run))
+            state = not state
+            run = other
+    runs = runs[1:]  # the first dwell began before the ring; the one under way is not done
+    hi_d = np.array([r for s, r in runs if s])
+    lo_d = np.array([r for s, r in runs if not s])
+    if hi_d.shape[0] < MIN_DWELLS or lo_d.shape[0] < MIN_DWELLS:
+        return None
+    q = (np.arange(pairs) + 0.5) / pairs
+    hq = np.quantile(hi_d, q)
+    lq = np.quantile(lo_d, q)[np.argsort(np.mod(np.arange(pairs) * 0.6180339887498949, 1.0))]
+    first, second = (hq, lq) if state else (lq, hq)
+    d_out = np.empty(2 * pairs)
+    c_out = np.empty(2 * pairs)
+    d_out[0::2] = first
+    d_out[1::2] = second
+    c_out[0::2] = high if state else low
+    c_out[1::2] = low if state else high
+    mean = float(hi_d.mean() + lo_d.mean())
+    var = float(hi_d.var(ddof=1) + lo_d.var(ddof=1))
+    n = min(hi_d.shape[0], lo_d.shape[0])
+    return DwellLoad(
+        durations_s=d_out,
+        currents_a=c_out,
+        low_a=low,
+        high_a=high,
+        dwells=(int(lo_d.shape[0]), int(hi_d.shape[0])),
+        cycle_mean_s=mean,
+        cycle_var_s2=var,
+        estimate_rel_var=var / (n * mean * mean),
+        renewal_var_s=var / mean,
+    )
+
+
 def load_segments(
     load: SquareWaveLoad | ConstantLoad | ProfileLoad | ObservedLoad,
     t_s: float,
@@ -197,6 +317,10 @@ def load_segments(
     if isinstance(load, ObservedLoad):
         if observed is None or observed[0].shape[0] < load.bins:
             return None
+        if load.model == "dwells":
+            dl = dwell_load(observed[0], observed[1], load.dwell_pairs, load.merge_tolerance_a)
+            if dl is not None:
+                return dl.durations_s, dl.currents_a
         return merge_bins(observed[0], observed[1], load.merge_tolerance_a)
     if isinstance(load, SquareWaveLoad):
         durations = np.array([load.duty * load.period_s, (1.0 - load.duty) * load.period_s])
@@ -303,6 +427,7 @@ def prognose(
     *,
     log_time_var: float = 0.0,
     walk_rel_var_per_s: float = 0.0,
+    renewal_var_s: float = 0.0,
     time_scale: float = 1.0,
 ) -> PrognosisResult:
     """Monte Carlo RUL and deterministic bounds from the estimate ``x`` and covariance ``cov``.
@@ -321,6 +446,10 @@ def prognose(
         walk_rel_var_per_s: relative random-walk variance of m per second (the filter's own
             model of a slowly varying m, seed assumption iii): over a remaining life T the mean
             of the walk has relative variance ``walk T / 3``, added to ``s^2`` per trajectory.
+        renewal_var_s: a random future load whose wear comes in cycles (:class:`DwellLoad`):
+            over a remaining life T the relative variance of the cycles, hence of the wear,
+            is ``renewal_var_s / T``, added to ``s^2`` per trajectory (T at least
+            ``renewal_var_s``).
         time_scale: factor on every time (Monte Carlo and bounds): the recalibration of the
             wear rate on the stream's record (``1 / (realized / predicted)``).
 
@@ -346,10 +475,15 @@ def prognose(
         settings.eps_seg,
         settings.eps_jump,
     )
-    if log_time_var > 0.0 or walk_rel_var_per_s > 0.0:
+    if log_time_var > 0.0 or walk_rel_var_per_s > 0.0 or renewal_var_s > 0.0:
         z_rate = rng.standard_normal(settings.n_trajectories)
         finite = np.isfinite(times)
-        var = log_time_var + walk_rel_var_per_s * np.where(finite, times, 0.0) / 3.0
+        t_fin = np.where(finite, times, 0.0)
+        var = log_time_var + walk_rel_var_per_s * t_fin / 3.0
+        if renewal_var_s > 0.0:
+            # a life shorter than about one cycle (renewal_var_s ~ the mean cycle for
+            # exponential dwells) counts as one: at most one cycle's relative variance
+            var = var + renewal_var_s / np.maximum(t_fin, renewal_var_s)
         times = np.where(finite, times * np.exp(np.sqrt(var) * z_rate), times)
     times = times * time_scale
     c = settings.bound_c

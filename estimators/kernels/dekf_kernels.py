@@ -62,7 +62,7 @@ CFG_CURRENT_VAR = 36  # variance of the measured current (A^2), propagated as pr
 CFG_INV_J1 = 37  # 1 / J1
 CFG_INV_J2 = 38  # 1 / J2
 CFG_DT_NOMINAL = 39  # nominal sample period (0: use the actual spacing)
-CFG_INPUT_INTERVAL = 40  # 1.0: interval-mean input with edge-timing variance; 0.0: held input
+CFG_INPUT_INTERVAL = 40  # 2.0: edge response moments; 1.0: interval-mean input; 0.0: held input
 CFG_INPUT_TIMING = 41  # channel skew/jitter allowance (s)
 CFG_ADAPT_MEMORY = 42  # memory of the noise estimates (s); 0: R and Q fixed
 CFG_GATE = 43  # 2: NIS gates for 1 and 2 measured channels (inf: no gating)
@@ -77,9 +77,12 @@ CFG_PCAL_TOL = 52  # current change tolerated in a calibration interval, relativ
 CFG_COV_SCALE = 53  # 1.0: report bands scaled by the running NIS / dof (when above 1)
 CFG_ALPHA_FLOOR = 54  # relative std of alpha the data cannot reduce (the plant calibration's)
 CFG_LEN = 55
-#: sigma = median(|y_k - 3 y_k-1 + 3 y_k-2 - y_k-3|) / (0.6745 sqrt(20)) for white noise
-MEDIAN_TO_SIGMA = 1.0 / (0.6744897501960817 * math.sqrt(20.0))
-#: third differences needed before the noise estimate replaces the configured R
+#: std of a normal over the median of its absolute value
+MEDIAN_TO_SIGMA = 1.0 / 0.6744897501960817
+#: the same for a third difference of white noise (variance 20 r)
+D3_TO_SIGMA = MEDIAN_TO_SIGMA / math.sqrt(20.0)
+NOISE_FLOOR = 1e-3  # smallest share of a residual's variance left to its own sensor
+#: one-step residuals needed (per speed) before the noise estimate replaces the configured R
 MIN_DIFFS = 8
 #: largest ln-factor of the back-extrapolation of alpha0 over the calibration segment
 CALIB_MAX_LOG = 0.5
@@ -170,8 +173,12 @@ ST_PCAL_OK = 247  # 1.0 applied, 0.0 rejected, NaN not done
 ST_NIS_RATIO = 248  # NIS / dof of the last health window (the covariance scale of the bands)
 ST_NIS_N = 249  # windows that set it
 ST_PCAL_ALPHA_REL = 250  # relative std of the calibrated alpha: a floor of the alpha band
-ST_RING = 251  # bins currents, then bins durations
-ST_BASE_LEN = 251
+ST_Y_RES = 251  # 2: posterior residuals y - x of w1, w2 at the last sample (NaN: missing)
+ST_QTL_RES = 253  # 2: running median of |one-step residual| of w1, w2
+ST_N_QTL_RES = 255  # 2: its sample counts
+ST_RING = 257  # bins currents, then bins durations
+ST_BASE_LEN = 257
+ST_BASE_LEN_V3 = 251
 ST_BASE_LEN_V1 = 49
 ST_BASE_LEN_V2 = 87
 PCAL_HIST_LEN = 11
@@ -449,6 +456,81 @@ def discretize(
     )  # fmt: skip
 
 
+EDGE_MAX_TERMS = 48  # series terms of the edge-response moments (theta up to about 12)
+
+
+@njit(cache=True, error_model="numpy", fastmath=FMA)
+def edge_moments(
+    cfg: FloatArray, w1: float, w2: float, al: float, m: float, dt: float
+) -> tuple[float, float, float, float, float, float, float, float, float]:
+    """Mean and covariance of the response at the end of an interval of length ``dt`` to a unit
+    current step at an unknown instant, uniform over the interval.
+
+    A step of the current at ``t_k - h`` moves ``[w1, w2, alpha]`` at ``t_k`` by
+    ``g(h) = int_0^h expm(G s) ds b`` (``G`` the Jacobian block at the posterior, ``b = [Km /
+    J1, 0, 0]``). With ``h ~ U(0, dt)`` and ``a_i = dt^(i+1) / (i+1)! G^i b``:
+
+        E[g]      = sum_i a_i / (i + 2)
+        E[g g^T]  = sum_ij a_i a_j^T / (i + j + 3)
+
+    (``E[h^n] = dt^n / (n + 1)``). The response of a step late in the interval is not a
+    multiple of an early one (the wheel lags the motor), so the uncertainty is not rank one.
+
+    Returns:
+        (mu0, mu1, mu2, c00, c01, c02, c11, c12, c22), the covariance ``E[g g^T] - mu mu^T``.
+    """
+    r1 = cfg[CFG_R1]
+    r2 = cfg[CFG_R2]
+    ij1 = cfg[CFG_INV_J1]
+    ij2 = cfg[CFG_INV_J2]
+    dv = r1 * w1 - r2 * w2
+    g00 = -(al * r1 * r1 + cfg[CFG_B1]) * ij1 * dt
+    g01 = al * r1 * r2 * ij1 * dt
+    g02 = -r1 * dv * ij1 * dt
+    g10 = al * r1 * r2 * ij2 * dt
+    g11 = -(al * r2 * r2 + cfg[CFG_B2]) * ij2 * dt
+    g12 = r2 * dv * ij2 * dt
+    g20 = -2.0 * al * m * r1 * dv * dt
+    g21 = 2.0 * al * m * r2 * dv * dt
+    g22 = -m * dv * dv * dt
+    a = np.empty((EDGE_MAX_TERMS, 3))
+    a[0, 0] = cfg[CFG_KM] * ij1 * dt
+    a[0, 1] = 0.0
+    a[0, 2] = 0.0
+    scale = abs(a[0, 0])
+    n = 1
+    while n < EDGE_MAX_TERMS:
+        c = 1.0 / (n + 1.0)
+        p0 = a[n - 1, 0]
+        p1 = a[n - 1, 1]
+        p2 = a[n - 1, 2]
+        a[n, 0] = (g00 * p0 + g01 * p1 + g02 * p2) * c
+        a[n, 1] = (g10 * p0 + g11 * p1 + g12 * p2) * c
+        a[n, 2] = (g20 * p0 + g21 * p1 + g22 * p2) * c
+        n += 1
+        if abs(a[n - 1, 0]) + abs(a[n - 1, 1]) <= 1e-13 * scale and n > 3:
+            break
+    mu0 = mu1 = mu2 = 0.0
+    s00 = s01 = s02 = s11 = s12 = s22 = 0.0
+    for i in range(n):
+        ci = 1.0 / (i + 2.0)
+        mu0 += a[i, 0] * ci
+        mu1 += a[i, 1] * ci
+        mu2 += a[i, 2] * ci
+        for j in range(n):
+            c = 1.0 / (i + j + 3.0)
+            s00 += a[i, 0] * a[j, 0] * c
+            s01 += a[i, 0] * a[j, 1] * c
+            s02 += a[i, 0] * a[j, 2] * c
+            s11 += a[i, 1] * a[j, 1] * c
+            s12 += a[i, 1] * a[j, 2] * c
+            s22 += a[i, 2] * a[j, 2] * c
+    return (
+        mu0, mu1, mu2, s00 - mu0 * mu0, s01 - mu0 * mu1, s02 - mu0 * mu2, s11 - mu1 * mu1,
+        s12 - mu1 * mu2, s22 - mu2 * mu2,
+    )  # fmt: skip
+
+
 # ----------------------------------------------------------------------------- filter
 @njit(cache=True, error_model="numpy")
 def _grow(rows: FloatArray, used: int) -> FloatArray:
@@ -638,7 +720,8 @@ def _ekf_kernel(
     bin_samples = cfg[CFG_OBS_BIN_SAMPLES]
     project = cfg[CFG_PROJECT] == 1.0
     var_i = cfg[CFG_CURRENT_VAR]
-    interval = cfg[CFG_INPUT_INTERVAL] == 1.0
+    interval = cfg[CFG_INPUT_INTERVAL] >= 1.0
+    edge_model = cfg[CFG_INPUT_INTERVAL] == 2.0
     timing = cfg[CFG_INPUT_TIMING]
     memory = cfg[CFG_ADAPT_MEMORY]
     gate1 = cfg[CFG_GATE]
@@ -662,12 +745,22 @@ def _ekf_kernel(
     init = st[ST_INIT] == 1.0
     qw0 = st[ST_QW]
     qw1 = st[ST_QW + 1]
+    pr0 = st[ST_Y_RES]
+    pr1 = st[ST_Y_RES + 1]
     h00 = st[ST_Y_HIST]
     h01 = st[ST_Y_HIST + 1]
     h02 = st[ST_Y_HIST + 2]
     h10 = st[ST_Y_HIST + 3]
     h11 = st[ST_Y_HIST + 4]
     h12 = st[ST_Y_HIST + 5]
+    qr0 = st[ST_QTL_RES]
+    qr1 = st[ST_QTL_RES + 1]
+    nr0 = st[ST_N_QTL_RES]
+    nr1 = st[ST_N_QTL_RES + 1]
+    ph00 = 1.0
+    ph01 = 0.0
+    ph10 = 0.0
+    ph11 = 1.0
     qt0 = st[ST_QTL]
     qt1 = st[ST_QTL + 1]
     nq0 = st[ST_N_QTL]
@@ -785,19 +878,39 @@ def _ekf_kernel(
             # variance of an edge at an unknown instant of the interval (uniform: dI^2 / 12)
             # plus a timing allowance (skew / jitter between channels) on this interval and the
             # previous one; "hold": the earlier sample (seed eq. 16).
+            # "edge": a change large enough to matter (its rank-one variance above a tenth of
+            # the w1 noise) is a step at an unknown instant of the interval, moving the state by
+            # du g(h) with the mean and covariance of edge_moments (the held current before it).
             u_step = u_held
             var_u = var_i
+            edge = False
             if interval:
                 ik = current[k]
                 du = ik - u_held if math.isfinite(ik) else 0.0
-                u_step = u_held + 0.5 * du
                 big = max(du * du, du_prev * du_prev)
-                var_u += du * du * (1.0 / 12.0) + big * (timing / dt) ** 2
+                var_u += big * (timing / dt) ** 2
+                kbdt = cfg[CFG_KM] * cfg[CFG_INV_J1] * dt
+                edge = edge_model and du * du * kbdt * kbdt > 1.2 * rh0
+                if not edge:
+                    u_step = u_held + 0.5 * du
+                    var_u += du * du * (1.0 / 12.0)
                 du_prev = du
+            if edge:
+                (
+                    em0, em1, em2, ec00, ec01, ec02, ec11, ec12, ec22,
+                ) = edge_moments(cfg, x0, x1, x2, m_wear, dt)  # fmt: skip
             (
                 e00, e01, e02, e10, e11, e12, e20, e21, e22, c0, c1, c2, e44, dx0, dx1, dx2,
                 gb0, gb1, gb2,
             ) = discretize(cfg, x0, x1, x2, m_wear, u_step, dt)  # fmt: skip
+            ph00 = e00
+            ph01 = e01
+            ph10 = e10
+            ph11 = e11
+            if edge:
+                dx0 += du * em0
+                dx1 += du * em1
+                dx2 += du * em2
             if not math.isfinite(alpha0) or math.isfinite(pcal_end):
                 dvc = r1 * x0 - r2 * x1
                 if not math.isfinite(alpha0):
@@ -830,6 +943,14 @@ def _ekf_kernel(
             n11 = m10 * e10 + m11 * e11 + m12 * e12 + w1 * c1 + qd1 + qw1 + var_u * gb1 * gb1
             n12 = m10 * e20 + m11 * e21 + m12 * e22 + w1 * c2 + var_u * gb1 * gb2
             n22 = m20 * e20 + m21 * e21 + m22 * e22 + w2 * c2 + qd2 + var_u * gb2 * gb2
+            if edge:
+                d2 = du * du
+                n00 += d2 * ec00
+                n01 += d2 * ec01
+                n02 += d2 * ec02
+                n11 += d2 * ec11
+                n12 += d2 * ec12
+                n22 += d2 * ec22
             p03 = w0 * e44
             p13 = w1 * e44
             p23 = w2 * e44
@@ -848,11 +969,25 @@ def _ekf_kernel(
                     ob_udt = 0.0
                     ob_dt = 0.0
                     ob_count = 0.0
+        y0_raw = y0
+        if skew != 0.0 and have0 and predicted:
+            # the w1 sample is taken skew seconds after the w2 sample (the filter's time): it
+            # is compared with w1 + skew dw1/dt, the slope from the model at the prior
+            ik = current[k]
+            u_now = ik if math.isfinite(ik) else u_held
+            dvp = r1 * x0 - r2 * x1
+            y0 = y0 - skew * (-x2 * r1 * dvp - cfg[CFG_B1] * x0 + cfg[CFG_KM] * u_now) * cfg[CFG_INV_J1]
         # --- noise estimation (when adaptive).
-        # Sensor noise R from the measurements alone: the running median of the absolute third
-        # difference of each speed (white noise of variance r gives a N(0, 20 r) difference,
-        # the smooth signal almost none; the median ignores the transients that follow current
-        # changes), by multiplicative steps of 1 / (n + 1), then at least 2 dt / memory.
+        # Sensor noise R: two running medians per speed, each of a statistic that is the noise
+        # plus a non-negative contamination, so the smaller estimate is kept:
+        # * the third difference y_k - 3 y_k-1 + 3 y_k-2 - y_k-3 (white noise: N(0, 20 r));
+        #   contaminated by the signal, which it does not remove at low sample rates;
+        # * the one-step residual rho_k = (y_k - x_{k|k-1}) - Ew pr, pr the previous posterior
+        #   residual y_{k-1} - x_{k-1|k-1}, Ew the speed block of Phi: rho_k = v_k - Ew v_{k-1}
+        #   + state error, so Var(rho_j) = r_j + sum_i Ew_ji^2 r_i (a 2x2 system for r); the
+        #   model's step removes the signal, but an estimate still converging contaminates it.
+        # The medians (robust to the transients of unmodelled inputs) move by multiplicative
+        # steps of 1 / (n + 1), then at least 2 dt / memory.
         # Process noise of the speeds (model, input-timing and discretization error) by
         # covariance matching of the innovations against their predicted variance:
         # q_j <- max(0, q_j + d (min(e_j^2, gate S_jj) - S_jj)), d = max(1 / (n + 2), dt / memory).
@@ -860,18 +995,16 @@ def _ekf_kernel(
             g_min = 2.0 * (tk - t_last) / memory if predicted else 1.0
             if have0:
                 if math.isfinite(h02):
-                    a3 = abs(y0 - 3.0 * h00 + 3.0 * h01 - h02)
+                    a3 = abs(y0_raw - 3.0 * h00 + 3.0 * h01 - h02)
                     if nq0 == 0.0:
                         qt0 = max(a3, 1e-300)
                     else:
                         g = 1.0 + max(1.0 / (nq0 + 1.0), g_min)
                         qt0 = qt0 * g if a3 > qt0 else qt0 / g
                     nq0 += 1.0
-                    if nq0 >= MIN_DIFFS:
-                        rh0 = (qt0 * MEDIAN_TO_SIGMA) ** 2
                 h02 = h01
                 h01 = h00
-                h00 = y0
+                h00 = y0_raw
             else:
                 h00 = h01 = h02 = np.nan
             if have1:
@@ -883,13 +1016,42 @@ def _ekf_kernel(
                         g = 1.0 + max(1.0 / (nq1 + 1.0), g_min)
                         qt1 = qt1 * g if a3 > qt1 else qt1 / g
                     nq1 += 1.0
-                    if nq1 >= MIN_DIFFS:
-                        rh1 = (qt1 * MEDIAN_TO_SIGMA) ** 2
                 h12 = h11
                 h11 = h10
                 h10 = y1
             else:
                 h10 = h11 = h12 = np.nan
+            if predicted and math.isfinite(pr0) and math.isfinite(pr1):
+                if have0:
+                    a3 = abs(y0 - x0 - ph00 * pr0 - ph01 * pr1)
+                    if nr0 == 0.0:
+                        qr0 = max(a3, 1e-300)
+                    else:
+                        g = 1.0 + max(1.0 / (nr0 + 1.0), g_min)
+                        qr0 = qr0 * g if a3 > qr0 else qr0 / g
+                    nr0 += 1.0
+                if have1:
+                    a3 = abs(y1 - x1 - ph10 * pr0 - ph11 * pr1)
+                    if nr1 == 0.0:
+                        qr1 = max(a3, 1e-300)
+                    else:
+                        g = 1.0 + max(1.0 / (nr1 + 1.0), g_min)
+                        qr1 = qr1 * g if a3 > qr1 else qr1 / g
+                    nr1 += 1.0
+            if nq0 >= MIN_DIFFS:
+                rh0 = (qt0 * D3_TO_SIGMA) ** 2
+            if nq1 >= MIN_DIFFS:
+                rh1 = (qt1 * D3_TO_SIGMA) ** 2
+            if nr0 >= MIN_DIFFS and nr1 >= MIN_DIFFS:
+                v0 = (qr0 * MEDIAN_TO_SIGMA) ** 2
+                v1 = (qr1 * MEDIAN_TO_SIGMA) ** 2
+                ca = 1.0 + ph00 * ph00
+                cb = ph01 * ph01
+                cc = ph10 * ph10
+                cd = 1.0 + ph11 * ph11
+                rdet = 1.0 / (ca * cd - cb * cc)
+                rh0 = min(rh0, max((v0 * cd - cb * v1) * rdet, NOISE_FLOOR * v0 / ca))
+                rh1 = min(rh1, max((ca * v1 - cc * v0) * rdet, NOISE_FLOOR * v1 / cd))
             if predicted and nq0 >= MIN_DIFFS and nq1 >= MIN_DIFFS:
                 d = max(1.0 / (n_adapt + 2.0), (tk - t_last) / memory)
                 if have0:
@@ -903,14 +1065,6 @@ def _ekf_kernel(
                 n_adapt += 1.0
         rv0 = rh0
         rv1 = rh1
-        y0_raw = y0
-        if skew != 0.0 and have0 and predicted:
-            # the w1 sample is taken skew seconds after the w2 sample (the filter's time): it
-            # is compared with w1 + skew dw1/dt, the slope from the model at the prior
-            ik = current[k]
-            u_now = ik if math.isfinite(ik) else u_held
-            dvp = r1 * x0 - r2 * x1
-            y0 = y0 - skew * (-x2 * r1 * dvp - cfg[CFG_B1] * x0 + cfg[CFG_KM] * u_now) * cfg[CFG_INV_J1]
         # --- update (Joseph form), with the measured channels only; an update whose NIS
         # exceeds the gate is down-weighted: S scaled by lam = NIS / gate (K / lam, and the
         # Joseph form with the matching R_eff = lam S - H P H^T)
@@ -1084,6 +1238,9 @@ def _ekf_kernel(
             if math.isfinite(alpha0):
                 x2 = min(x2, alpha0 * alpha_max)
             x2 = max(x2, 0.0)
+        # posterior residuals for the next step's noise estimate
+        pr0 = y0 - x0 if have0 else np.nan
+        pr1 = y1 - x1 if have1 else np.nan
         # alpha0 calibration: each sample gives a candidate alpha-hat carried back over the
         # wear so far, ln alpha0 = ln alpha(t) + m int_0^t dv^2 dt (eq. 7), of variance
         # P_aa / alpha^2 + I^2 P_mm + 2 I P_am / alpha; the candidate of least variance is
@@ -1339,12 +1496,18 @@ def _ekf_kernel(
     st[ST_QW + 1] = qw1
     st[ST_A0_BEST] = a0_best
     st[ST_A0_VAR] = a0_var
+    st[ST_Y_RES] = pr0
+    st[ST_Y_RES + 1] = pr1
     st[ST_Y_HIST] = h00
     st[ST_Y_HIST + 1] = h01
     st[ST_Y_HIST + 2] = h02
     st[ST_Y_HIST + 3] = h10
     st[ST_Y_HIST + 4] = h11
     st[ST_Y_HIST + 5] = h12
+    st[ST_QTL_RES] = qr0
+    st[ST_QTL_RES + 1] = qr1
+    st[ST_N_QTL_RES] = nr0
+    st[ST_N_QTL_RES + 1] = nr1
     st[ST_QTL] = qt0
     st[ST_QTL + 1] = qt1
     st[ST_N_QTL] = nq0

@@ -582,7 +582,7 @@ def test_state_errors() -> None:
     config = seed_config({})
     blob = de.dump_state(de.initial_state(config))
     with pytest.raises(StateVersionError, match="99"):
-        de.load_state(blob.replace(b'"version":3', b'"version":99'))
+        de.load_state(blob.replace(b"\"version\":4", b"\"version\":99"))
     with pytest.raises(EstimatorError):
         de.load_state(b"not json")
     with pytest.raises(EstimatorError, match="kind"):
@@ -641,7 +641,7 @@ def test_config_round_trip_and_defaults() -> None:
     _json_safe(d)
     assert de.parse_config(d) == config
     assert de.parse_config(json.loads(json.dumps(d))) == config
-    assert d["alpha0"] == 10.0 and d["input_model"] == "interval" and d["noise_adaptation"]
+    assert d["alpha0"] == 10.0 and d["input_model"] == "edge" and d["noise_adaptation"]
     assert de.parse_config({"alpha0": None}).alpha0 is None
     json.dumps(de.CONFIG_MODEL.model_json_schema())
     config = de.parse_config(SEED)
