@@ -751,6 +751,7 @@ def _decide(
     a_smooth: float,
     a_clear: float,
     llr: float,
+    may_detect: bool,
 ) -> int:
     """Detection, classification and clearance of one surface at one sample; returns 0 or
     ``EV_DETECTED``/``EV_CLASSIFIED``/``EV_CLEARED`` (the caller writes the event from
@@ -759,7 +760,8 @@ def _decide(
     Detection needs, held together for ``CFG_HOLD_S``: the probability above ``CFG_DETECT_P``,
     the smoothed deflection estimate more than ``CFG_MIN_ERR`` from the command, and at the end
     the log-likelihood ratio against the no-fault filter summed over the run at least
-    ``CFG_MIN_LLR``. Clearance (hysteresis): the smoothed difference between deflection estimate
+    ``CFG_MIN_LLR``; ``may_detect`` false (another surface was detected at this sample) defers
+    it. Clearance (hysteresis): the smoothed difference between deflection estimate
     and command inside ``CFG_CLEAR_DEFL`` (the surface follows its command again) and, unless
     the bank is rebased (the probability then no longer compares with the command), the
     probability below ``CFG_CLEAR_P``, together for ``CFG_CLEAR_HOLD_S``."""
@@ -786,7 +788,11 @@ def _decide(
             if math.isfinite(llr):
                 dec[h, D_LLR] += llr
             _kind_add(dec, kbuf, h, t, defl, defl_var)
-            if t - dec[h, D_ABOVE_T] >= cfg[CFG_HOLD_S] and dec[h, D_LLR] >= cfg[CFG_MIN_LLR]:
+            if (
+                may_detect
+                and t - dec[h, D_ABOVE_T] >= cfg[CFG_HOLD_S]
+                and dec[h, D_LLR] >= cfg[CFG_MIN_LLR]
+            ):
                 dec[h, D_ACTIVE] = 1.0
                 dec[h, D_DETECTED_T] = t
                 dec[h, D_BELOW_T] = np.nan
@@ -820,48 +826,44 @@ def _decide(
 
 @njit(cache=True, error_model="numpy")
 def _relevant_loglik(
-    bank: BankArrays, dec: FloatArray, ll: FloatArray, rel_in: FloatArray, base: FloatArray
+    bank: BankArrays,
+    dec: FloatArray,
+    ll: FloatArray,
+    rel_in: FloatArray,
+    base: FloatArray,
 ) -> None:
-    """Log-likelihoods of the detection evidence of each surface ``g``: ``rel_in[g]`` the best
-    filter among those *relevant* to a new fault of ``g`` (holding every active fault and
-    ``g``), ``base[g]`` the filter of exactly the active faults (the no-fault filter when none
-    is active). When no filter holds the active faults and ``g`` (a third fault while two are
-    active: the bank has no triple hypotheses) the evidence falls back to the best filter
-    holding ``g`` against the no-fault filter."""
+    """Log-likelihoods of the detection evidence of each surface ``g`` not in fault, a
+    generalized likelihood ratio between two nested families of hypotheses (``A`` the active
+    faults):
+
+        rel_in[g] = max_{h : g in S_h, S_h - {g} subset of A} log f_h
+        base[g]   = max_{h : S_h subset of A} log f_h
+
+    ``rel_in``: "g has failed (and some of the active faults hold)", ``base``: "no fault beyond
+    the active ones" (with none active: the filters of ``g`` against the no-fault filter). The
+    base family holds the subsets of ``A`` so that a fault that has just ended (its filter
+    re-converging, the no-fault filter already right) does not lend evidence to another
+    surface, and with two active faults a third is measured against their pair's filter."""
     nh = ll.shape[0]
     ns = rel_in.shape[0]
     n_slots = bank.slot_surface.shape[1]
-    n_act = 0
     for g in range(ns):
         rel_in[g] = -np.inf
-        if dec[g, D_ACTIVE] == 1.0:
-            n_act += 1
-    ll_active = -np.inf
+        base[g] = -np.inf
     for f in range(nh):
-        count = 0
-        held = 0
+        n_new = 0
+        new_g = -1
         for e in range(n_slots):
             g = bank.slot_surface[f, e]
-            if g >= 0:
-                count += 1
-                if dec[g, D_ACTIVE] == 1.0:
-                    held += 1
-        if held < n_act:
-            continue
-        if count == n_act:
-            ll_active = ll[f]
-        for e in range(n_slots):
-            g = bank.slot_surface[f, e]
-            if g >= 0 and ll[f] > rel_in[g]:
-                rel_in[g] = ll[f]
-    for g in range(ns):
-        base[g] = ll_active
-        if rel_in[g] == -np.inf:
-            base[g] = ll[0]
-            for f in range(nh):
-                for e in range(n_slots):
-                    if bank.slot_surface[f, e] == g and ll[f] > rel_in[g]:
-                        rel_in[g] = ll[f]
+            if g >= 0 and dec[g, D_ACTIVE] != 1.0:
+                n_new += 1
+                new_g = g
+        if n_new == 0:
+            for g in range(ns):
+                if ll[f] > base[g]:
+                    base[g] = ll[f]
+        elif n_new == 1 and ll[f] > rel_in[new_g]:
+            rel_in[new_g] = ll[f]
 
 
 @njit(cache=True, error_model="numpy")
@@ -1031,6 +1033,7 @@ def _bank_kernel(
     rel_in = np.empty(ns)
     rel_base = np.empty(ns)
     best_in = np.full(ns, -1, dtype=np.int64)
+    order = np.empty(ns, dtype=np.int64)
     probs = st[lay_probs : lay_probs + nh]
     u_last = st[lay_u : lay_u + m]
     wacc = st[lay_win : lay_win + W_LEN]
@@ -1151,11 +1154,25 @@ def _bank_kernel(
         for h in range(ns):
             if dec[h, D_ACTIVE] == 1.0:
                 n_active_before += 1
+        # surfaces in decreasing marginal probability: at most one new detection per sample,
+        # the most probable surface's (a pair hypothesis's mass counts for both its surfaces,
+        # which would otherwise be detected together; the others' runs then restart against
+        # the new active set)
         for h in range(ns):
+            order[h] = h
+        for i in range(1, ns):
+            j = i
+            while j > 0 and pm[order[j]] > pm[order[j - 1]]:
+                tmp_i = order[j]
+                order[j] = order[j - 1]
+                order[j - 1] = tmp_i
+                j -= 1
+        detected_now = False
+        for idx in range(ns):
+            h = order[idx]
             defl = dsum[h] / pm[h]
-            samples[row, k] = defl
-            samples[row + ns, k] = pm[h]
-            row += 1
+            samples[row + h, k] = defl
+            samples[row + ns + h, k] = pm[h]
             dec[h, D_DEFL] = defl
             dec[h, D_PROB] = pm[h]
             cmd = u_last[surface_inputs[h]]
@@ -1174,7 +1191,10 @@ def _bank_kernel(
                 a_smooth,
                 a_clear,
                 llr,
+                not detected_now,
             )
+            if code == EV_DETECTED:
+                detected_now = True
             if code != 0:
                 events = _write_event(events, n_ev, tk, float(code), dec, h)
                 n_ev += 1
@@ -1195,7 +1215,7 @@ def _bank_kernel(
             for h in range(ns):
                 if dec[h, D_ACTIVE] != 1.0:
                     dec[h, D_ABOVE_T] = np.nan
-        row += ns
+        row += 2 * ns
         samples[row, k] = nis0
         # health window
         if wacc[W_COUNT] == 0.0:
