@@ -290,7 +290,7 @@ class StmmaeConfig(EstimatorConfigModel):
         description="time constant of the smoothed deflection error of the clearance test, s",
     )
     oscillation_correlation: Number = Field(
-        -0.38,
+        -0.5,
         gt=-1.0,
         lt=0.0,
         description="a fault is oscillating when the autocorrelation of its deflection history "

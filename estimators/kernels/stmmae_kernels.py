@@ -745,23 +745,24 @@ def _decide(
     t: float,
     dt: float,
     prob: float,
+    iso: float,
     defl: float,
     defl_var: float,
     cmd: float,
     a_smooth: float,
     a_clear: float,
     llr: float,
-    may_detect: bool,
 ) -> int:
     """Detection, classification and clearance of one surface at one sample; returns 0 or
     ``EV_DETECTED``/``EV_CLASSIFIED``/``EV_CLEARED`` (the caller writes the event from
     ``dec[h]``; after a clearance it calls :func:`reset_after_clearance`).
 
-    Detection needs, held together for ``CFG_HOLD_S``: the probability above ``CFG_DETECT_P``,
-    the smoothed deflection estimate more than ``CFG_MIN_ERR`` from the command, and at the end
-    the log-likelihood ratio against the no-fault filter summed over the run at least
-    ``CFG_MIN_LLR``; ``may_detect`` false (another surface was detected at this sample) defers
-    it. Clearance (hysteresis): the smoothed difference between deflection estimate
+    Detection needs, held together for ``CFG_HOLD_S``: the marginal probability ``prob`` and
+    the isolation odds ``iso`` (the surface's probability of being the only new fault against
+    its strongest competitor's) above ``CFG_DETECT_P``, the smoothed deflection estimate more
+    than ``CFG_MIN_ERR`` from the command, and at the end the log-likelihood ratio between the
+    nested families (:func:`_relevant_loglik`) summed over the run at least ``CFG_MIN_LLR``.
+    Clearance (hysteresis): the smoothed difference between deflection estimate
     and command inside ``CFG_CLEAR_DEFL`` (the surface follows its command again) and, unless
     the bank is rebased (the probability then no longer compares with the command), the
     probability below ``CFG_CLEAR_P``, together for ``CFG_CLEAR_HOLD_S``."""
@@ -781,18 +782,18 @@ def _decide(
     elif not active:
         dec[h, D_ONSET_T] = np.nan
     if not active:
-        holds = prob > cfg[CFG_DETECT_P] and abs(dec[h, D_SMOOTH] - cmd) > cfg[CFG_MIN_ERR]
+        holds = (
+            prob > cfg[CFG_DETECT_P]
+            and iso > cfg[CFG_DETECT_P]
+            and abs(dec[h, D_SMOOTH] - cmd) > cfg[CFG_MIN_ERR]
+        )
         if holds:
             if math.isnan(dec[h, D_ABOVE_T]):
                 _start_run(dec, h, t)
             if math.isfinite(llr):
                 dec[h, D_LLR] += llr
             _kind_add(dec, kbuf, h, t, defl, defl_var)
-            if (
-                may_detect
-                and t - dec[h, D_ABOVE_T] >= cfg[CFG_HOLD_S]
-                and dec[h, D_LLR] >= cfg[CFG_MIN_LLR]
-            ):
+            if t - dec[h, D_ABOVE_T] >= cfg[CFG_HOLD_S] and dec[h, D_LLR] >= cfg[CFG_MIN_LLR]:
                 dec[h, D_ACTIVE] = 1.0
                 dec[h, D_DETECTED_T] = t
                 dec[h, D_BELOW_T] = np.nan
@@ -829,8 +830,10 @@ def _relevant_loglik(
     bank: BankArrays,
     dec: FloatArray,
     ll: FloatArray,
+    probs: FloatArray,
     rel_in: FloatArray,
     base: FloatArray,
+    p_new: FloatArray,
 ) -> None:
     """Log-likelihoods of the detection evidence of each surface ``g`` not in fault, a
     generalized likelihood ratio between two nested families of hypotheses (``A`` the active
@@ -843,13 +846,16 @@ def _relevant_loglik(
     the active ones" (with none active: the filters of ``g`` against the no-fault filter). The
     base family holds the subsets of ``A`` so that a fault that has just ended (its filter
     re-converging, the no-fault filter already right) does not lend evidence to another
-    surface, and with two active faults a third is measured against their pair's filter."""
+    surface, and with two active faults a third is measured against their pair's filter.
+    ``p_new[g]``: the probability of the first family (``g`` the only new fault), for the
+    isolation condition."""
     nh = ll.shape[0]
     ns = rel_in.shape[0]
     n_slots = bank.slot_surface.shape[1]
     for g in range(ns):
         rel_in[g] = -np.inf
         base[g] = -np.inf
+        p_new[g] = 0.0
     for f in range(nh):
         n_new = 0
         new_g = -1
@@ -862,8 +868,10 @@ def _relevant_loglik(
             for g in range(ns):
                 if ll[f] > base[g]:
                     base[g] = ll[f]
-        elif n_new == 1 and ll[f] > rel_in[new_g]:
-            rel_in[new_g] = ll[f]
+        elif n_new == 1:
+            p_new[new_g] += probs[f]
+            if ll[f] > rel_in[new_g]:
+                rel_in[new_g] = ll[f]
 
 
 @njit(cache=True, error_model="numpy")
@@ -1032,8 +1040,9 @@ def _bank_kernel(
     ll_out = np.empty(ns)
     rel_in = np.empty(ns)
     rel_base = np.empty(ns)
+    p_new = np.empty(ns)
+    iso = np.empty(ns)
     best_in = np.full(ns, -1, dtype=np.int64)
-    order = np.empty(ns, dtype=np.int64)
     probs = st[lay_probs : lay_probs + nh]
     u_last = st[lay_u : lay_u + m]
     wacc = st[lay_win : lay_win + W_LEN]
@@ -1149,30 +1158,25 @@ def _bank_kernel(
                         best_in[g] = f
                 elif ll[f] > ll_out[g]:
                     ll_out[g] = ll[f]
-        _relevant_loglik(bank, dec, ll, rel_in, rel_base)
+        _relevant_loglik(bank, dec, ll, probs, rel_in, rel_base, p_new)
+        # isolation odds of each surface not in fault against its strongest competitor among
+        # the other surfaces not in fault, on the probabilities of "it is the only new fault"
+        for g in range(ns):
+            comp = 0.0
+            for o in range(ns):
+                if o != g and dec[o, D_ACTIVE] != 1.0 and p_new[o] > comp:
+                    comp = p_new[o]
+            tot = p_new[g] + comp
+            iso[g] = p_new[g] / tot if tot > 0.0 else 0.0
         n_active_before = 0
         for h in range(ns):
             if dec[h, D_ACTIVE] == 1.0:
                 n_active_before += 1
-        # surfaces in decreasing marginal probability: at most one new detection per sample,
-        # the most probable surface's (a pair hypothesis's mass counts for both its surfaces,
-        # which would otherwise be detected together; the others' runs then restart against
-        # the new active set)
         for h in range(ns):
-            order[h] = h
-        for i in range(1, ns):
-            j = i
-            while j > 0 and pm[order[j]] > pm[order[j - 1]]:
-                tmp_i = order[j]
-                order[j] = order[j - 1]
-                order[j - 1] = tmp_i
-                j -= 1
-        detected_now = False
-        for idx in range(ns):
-            h = order[idx]
             defl = dsum[h] / pm[h]
-            samples[row + h, k] = defl
-            samples[row + ns + h, k] = pm[h]
+            samples[row, k] = defl
+            samples[row + ns, k] = pm[h]
+            row += 1
             dec[h, D_DEFL] = defl
             dec[h, D_PROB] = pm[h]
             cmd = u_last[surface_inputs[h]]
@@ -1185,16 +1189,14 @@ def _bank_kernel(
                 tk,
                 dt,
                 pm[h],
+                iso[h],
                 defl,
                 vsum[h] / pm[h],
                 cmd,
                 a_smooth,
                 a_clear,
                 llr,
-                not detected_now,
             )
-            if code == EV_DETECTED:
-                detected_now = True
             if code != 0:
                 events = _write_event(events, n_ev, tk, float(code), dec, h)
                 n_ev += 1
@@ -1215,7 +1217,7 @@ def _bank_kernel(
             for h in range(ns):
                 if dec[h, D_ACTIVE] != 1.0:
                     dec[h, D_ABOVE_T] = np.nan
-        row += 2 * ns
+        row += ns
         samples[row, k] = nis0
         # health window
         if wacc[W_COUNT] == 0.0:
