@@ -14,9 +14,10 @@ probabilities follow the Bayes recursion with either the seed's Euclidean-norm l
 full Gaussian density, floored per hypothesis.
 
 Decisions are per surface, on its marginal fault probability: a detection needs the probability
-above ``detect_probability``, the deflection estimate off its command and the log-likelihood
-ratio against the no-fault filter summed over the run above ``min_log_likelihood_ratio``, held
-``hold_s``; the fault kind (stuck or oscillating) is judged from the autocorrelation of the
+and the isolation odds (its probability of being the only new fault against the strongest other
+surface's) above ``detect_probability``, the deflection estimate off its command and the
+log-likelihood ratio between "this surface and a subset of the active faults" and "a subset of
+the active faults" summed over the run above ``min_log_likelihood_ratio``, held ``hold_s``; the fault kind (stuck or oscillating) is judged from the autocorrelation of the
 deflection history over ``fault_kind_window_s``; clearance needs the surface back at its
 command with a low probability for ``clear_hold_s``.
 
@@ -253,8 +254,9 @@ class StmmaeConfig(EstimatorConfigModel):
         6.0,
         ge=0.0,
         le=1e6,
-        description="smallest log-likelihood ratio of the fault filter against the no-fault "
-        "filter, summed over the detection hold, for a detection (nats)",
+        description="smallest log-likelihood ratio, summed over the detection run, of the best "
+        "filter holding the surface (and a subset of the active faults) against the best filter "
+        "holding a subset of the active faults, for a detection (nats)",
     )
     pair_hypotheses: bool = Field(
         True,
