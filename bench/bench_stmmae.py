@@ -2,12 +2,21 @@
 cost of the Euclidean-norm likelihood against the Gaussian density, measured side by side.
 
 Prints figures; asserts nothing. Run: ``.venv/bin/python bench/bench_stmmae.py``.
+``--baseline DIR`` also times the default bank and the bank of 6 of another source tree (e.g.
+``git worktree add --detach /tmp/base main``) on the same flight, in alternating child
+processes, and prints both side by side.
 """
 
 from __future__ import annotations
 
+import argparse
+import json
+import os
+import subprocess
+import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 from filterpy.kalman import KalmanFilter, MMAEFilterBank
@@ -64,7 +73,67 @@ def _loop_euclidean(gams: np.ndarray, s: np.ndarray, w: np.ndarray) -> float:
     return acc
 
 
+# timed in a child process so that each source tree imports its own estimator and kernel
+_TREE_TIMING = """
+import json, time
+from estimators import stmmae
+from estimators.base import Batch
+from estimators.simulators.uav_closed_loop import PAPER_FAULT_SCHEDULE, simulate_flight
+stmmae.warm_up()
+t, ch, _ = simulate_flight(60.0, faults=PAPER_FAULT_SCHEDULE, seed=0)
+batch = Batch(t_s=t, channels=ch)
+out = {}
+for name, raw in (("default", {}), ("bank of 6", {"pair_hypotheses": False})):
+    config = stmmae.parse_config(raw)
+    state0 = stmmae.initial_state(config)
+    best = float("inf")
+    for _ in range(5):
+        t0 = time.perf_counter()
+        stmmae.step(config, state0, batch)
+        best = min(best, time.perf_counter() - t0)
+    out[name] = best / len(t)
+print(json.dumps(out))
+"""
+
+
+def tree_timings(tree: Path) -> dict[str, float]:
+    """Per-sample cost of the default bank and of the bank of 6 with ``tree``'s code."""
+    env = {**os.environ, "PYTHONPATH": str(tree)}
+    res = subprocess.run(
+        [sys.executable, "-c", _TREE_TIMING],
+        cwd=tree,
+        env=env,
+        check=True,
+        capture_output=True,
+        text=True,
+    )
+    return {k: float(v) for k, v in json.loads(res.stdout.strip().splitlines()[-1]).items()}
+
+
+def side_by_side(baseline: Path, rounds: int = 3) -> None:
+    """This tree against ``baseline``, alternating, best of ``rounds`` child processes each."""
+    here = Path(__file__).resolve().parent.parent
+    best: dict[str, dict[str, float]] = {"this tree": {}, "baseline": {}}
+    for _ in range(rounds):
+        for label, tree in (("this tree", here), ("baseline", baseline)):
+            for name, secs in tree_timings(tree).items():
+                best[label][name] = min(best[label].get(name, float("inf")), secs)
+    print(f"side by side with {baseline} (60 s flight, best of {rounds} alternating runs):")
+    for name in best["this tree"]:
+        new, old = best["this tree"][name], best["baseline"][name]
+        print(
+            f"  {name:<10} this tree {new * 1e6:7.1f} us  baseline {old * 1e6:7.1f} us  "
+            f"ratio {new / old:5.2f}"
+        )
+    print()
+
+
 def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--baseline", type=Path, default=None, help="another source tree to compare")
+    args = ap.parse_args()
+    if args.baseline is not None:
+        side_by_side(args.baseline.resolve())
     stmmae.warm_up()
     t, ch, _ = simulate_flight(300.0, faults=PAPER_FAULT_SCHEDULE, seed=0)
     n = len(t)

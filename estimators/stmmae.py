@@ -14,9 +14,10 @@ probabilities follow the Bayes recursion with either the seed's Euclidean-norm l
 full Gaussian density, floored per hypothesis.
 
 Decisions are per surface, on its marginal fault probability: a detection needs the probability
-above ``detect_probability``, the deflection estimate off its command and the log-likelihood
-ratio against the no-fault filter summed over the run above ``min_log_likelihood_ratio``, held
-``hold_s``; the fault kind (stuck or oscillating) is judged from the autocorrelation of the
+and the isolation odds (its probability of being the only new fault against the strongest other
+surface's) above ``detect_probability``, the deflection estimate off its command and the
+log-likelihood ratio between "this surface and a subset of the active faults" and "a subset of
+the active faults" summed over the run above ``min_log_likelihood_ratio``, held ``hold_s``; the fault kind (stuck or oscillating) is judged from the autocorrelation of the
 deflection history over ``fault_kind_window_s``; clearance needs the surface back at its
 command with a low probability for ``clear_hold_s``.
 
@@ -35,6 +36,7 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import Field, ValidationError, field_validator, model_validator
+from scipy.stats import chi2
 
 from estimators.base import (
     Batch,
@@ -208,7 +210,15 @@ class StmmaeConfig(EstimatorConfigModel):
     )
     weakening_factor: Annotated[Number, Field(ge=1.0, le=1e6)] | Literal["auto"] = Field(
         "auto",
-        description="beta >= 1 of the fading factor, or 'auto' (1 + 3 sqrt(2(1-rho)/(p(1+rho))))",
+        description="beta >= 1 of the fading factor, or 'auto': the level that tr(W V) / p "
+        "of a consistent filter exceeds with probability fading_tail_probability per sample",
+    )
+    fading_tail_probability: Number = Field(
+        1e-5,
+        gt=0.0,
+        lt=0.5,
+        description="'auto' weakening factor: per-sample probability that noise alone triggers "
+        "fading on a consistent filter",
     )
     fading_weights: tuple[Annotated[Number, Field(ge=1.0, le=1e6)], ...] | None = Field(
         None,
@@ -219,7 +229,7 @@ class StmmaeConfig(EstimatorConfigModel):
         1.0, ge=1.0, le=1e6, description="a_j of the deflection state(s)"
     )
     deflection_diffusion_deg2_s: Number = Field(
-        0.25, gt=0.0, le=1e6, description="random-walk intensity of a deflection state, deg^2/s"
+        25.0, gt=0.0, le=1e6, description="random-walk intensity of a deflection state, deg^2/s"
     )
     deflection_initial_std_deg: Number = Field(
         10.0, gt=0.0, le=180.0, description="initial std of a deflection state, deg"
@@ -244,8 +254,9 @@ class StmmaeConfig(EstimatorConfigModel):
         6.0,
         ge=0.0,
         le=1e6,
-        description="smallest log-likelihood ratio of the fault filter against the no-fault "
-        "filter, summed over the detection hold, for a detection (nats)",
+        description="smallest log-likelihood ratio, summed over the detection run, of the best "
+        "filter holding the surface (and a subset of the active faults) against the best filter "
+        "holding a subset of the active faults, for a detection (nats)",
     )
     pair_hypotheses: bool = Field(
         True,
@@ -281,7 +292,7 @@ class StmmaeConfig(EstimatorConfigModel):
         description="time constant of the smoothed deflection error of the clearance test, s",
     )
     oscillation_correlation: Number = Field(
-        -0.38,
+        -0.5,
         gt=-1.0,
         lt=0.0,
         description="a fault is oscillating when the autocorrelation of its deflection history "
@@ -422,15 +433,18 @@ def required_channels(config: StmmaeConfig) -> tuple[str, ...]:
 
 
 def weakening_factor(config: StmmaeConfig) -> float:
-    """The weakening factor in use. "auto": ``1 + 3 sqrt(2 (1 - rho) / (p (1 + rho)))``, three
-    standard deviations of the relative fluctuation of ``tr(W V)`` on a consistent filter (an
-    exponential average of ``(1 + rho) / (1 - rho)`` samples of a chi-square with p degrees of
-    freedom), so that noise alone rarely triggers fading."""
+    """The weakening factor in use. "auto": the ``1 - fading_tail_probability`` quantile of
+    ``tr(W V) / p`` on a consistent filter, so that noise alone triggers fading with that
+    probability per sample. ``V`` weighs the innovation of ``j`` samples ago by
+    ``rho^j / (1 + rho)^(j + 1)`` (sum 1, sum of squares ``1 / (1 + 2 rho)``), so ``tr(W V)`` is
+    a weighted sum of chi-square variables with ``p`` degrees of freedom; it is taken as a
+    scaled chi-square with ``nu = p (1 + 2 rho)`` degrees of freedom (same mean and variance):
+    ``beta = chi2.ppf(1 - tail, nu) / nu`` (3.14 for p = 6, rho = 0.95, tail 1e-5)."""
     if config.weakening_factor != "auto":
         return float(config.weakening_factor)
     rho = config.forgetting_factor
-    p = len(config.model.measurements)
-    return 1.0 + 3.0 * math.sqrt(2.0 * (1.0 - rho) / (p * (1.0 + rho)))
+    nu = len(config.model.measurements) * (1.0 + 2.0 * rho)
+    return max(1.0, float(chi2.ppf(1.0 - config.fading_tail_probability, nu)) / nu)
 
 
 def _kernel_vector(config: StmmaeConfig) -> FloatArray:

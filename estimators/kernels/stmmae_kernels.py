@@ -745,6 +745,7 @@ def _decide(
     t: float,
     dt: float,
     prob: float,
+    iso: float,
     defl: float,
     defl_var: float,
     cmd: float,
@@ -756,10 +757,12 @@ def _decide(
     ``EV_DETECTED``/``EV_CLASSIFIED``/``EV_CLEARED`` (the caller writes the event from
     ``dec[h]``; after a clearance it calls :func:`reset_after_clearance`).
 
-    Detection needs, held together for ``CFG_HOLD_S``: the probability above ``CFG_DETECT_P``,
-    the smoothed deflection estimate more than ``CFG_MIN_ERR`` from the command, and at the end
-    the log-likelihood ratio against the no-fault filter summed over the run at least
-    ``CFG_MIN_LLR``. Clearance (hysteresis): the smoothed difference between deflection estimate
+    Detection needs, held together for ``CFG_HOLD_S``: the marginal probability ``prob`` and
+    the isolation odds ``iso`` (the surface's probability of being the only new fault against
+    its strongest competitor's) above ``CFG_DETECT_P``, the smoothed deflection estimate more
+    than ``CFG_MIN_ERR`` from the command, and at the end the log-likelihood ratio between the
+    nested families (:func:`_relevant_loglik`) summed over the run at least ``CFG_MIN_LLR``.
+    Clearance (hysteresis): the smoothed difference between deflection estimate
     and command inside ``CFG_CLEAR_DEFL`` (the surface follows its command again) and, unless
     the bank is rebased (the probability then no longer compares with the command), the
     probability below ``CFG_CLEAR_P``, together for ``CFG_CLEAR_HOLD_S``."""
@@ -779,7 +782,11 @@ def _decide(
     elif not active:
         dec[h, D_ONSET_T] = np.nan
     if not active:
-        holds = prob > cfg[CFG_DETECT_P] and abs(dec[h, D_SMOOTH] - cmd) > cfg[CFG_MIN_ERR]
+        holds = (
+            prob > cfg[CFG_DETECT_P]
+            and iso > cfg[CFG_DETECT_P]
+            and abs(dec[h, D_SMOOTH] - cmd) > cfg[CFG_MIN_ERR]
+        )
         if holds:
             if math.isnan(dec[h, D_ABOVE_T]):
                 _start_run(dec, h, t)
@@ -820,48 +827,51 @@ def _decide(
 
 @njit(cache=True, error_model="numpy")
 def _relevant_loglik(
-    bank: BankArrays, dec: FloatArray, ll: FloatArray, rel_in: FloatArray, base: FloatArray
+    bank: BankArrays,
+    dec: FloatArray,
+    ll: FloatArray,
+    probs: FloatArray,
+    rel_in: FloatArray,
+    base: FloatArray,
+    p_new: FloatArray,
 ) -> None:
-    """Log-likelihoods of the detection evidence of each surface ``g``: ``rel_in[g]`` the best
-    filter among those *relevant* to a new fault of ``g`` (holding every active fault and
-    ``g``), ``base[g]`` the filter of exactly the active faults (the no-fault filter when none
-    is active). When no filter holds the active faults and ``g`` (a third fault while two are
-    active: the bank has no triple hypotheses) the evidence falls back to the best filter
-    holding ``g`` against the no-fault filter."""
+    """Log-likelihoods of the detection evidence of each surface ``g`` not in fault, a
+    generalized likelihood ratio between two nested families of hypotheses (``A`` the active
+    faults):
+
+        rel_in[g] = max_{h : g in S_h, S_h - {g} subset of A} log f_h
+        base[g]   = max_{h : S_h subset of A} log f_h
+
+    ``rel_in``: "g has failed (and some of the active faults hold)", ``base``: "no fault beyond
+    the active ones" (with none active: the filters of ``g`` against the no-fault filter). The
+    base family holds the subsets of ``A`` so that a fault that has just ended (its filter
+    re-converging, the no-fault filter already right) does not lend evidence to another
+    surface, and with two active faults a third is measured against their pair's filter.
+    ``p_new[g]``: the probability of the first family (``g`` the only new fault), for the
+    isolation condition."""
     nh = ll.shape[0]
     ns = rel_in.shape[0]
     n_slots = bank.slot_surface.shape[1]
-    n_act = 0
     for g in range(ns):
         rel_in[g] = -np.inf
-        if dec[g, D_ACTIVE] == 1.0:
-            n_act += 1
-    ll_active = -np.inf
+        base[g] = -np.inf
+        p_new[g] = 0.0
     for f in range(nh):
-        count = 0
-        held = 0
+        n_new = 0
+        new_g = -1
         for e in range(n_slots):
             g = bank.slot_surface[f, e]
-            if g >= 0:
-                count += 1
-                if dec[g, D_ACTIVE] == 1.0:
-                    held += 1
-        if held < n_act:
-            continue
-        if count == n_act:
-            ll_active = ll[f]
-        for e in range(n_slots):
-            g = bank.slot_surface[f, e]
-            if g >= 0 and ll[f] > rel_in[g]:
-                rel_in[g] = ll[f]
-    for g in range(ns):
-        base[g] = ll_active
-        if rel_in[g] == -np.inf:
-            base[g] = ll[0]
-            for f in range(nh):
-                for e in range(n_slots):
-                    if bank.slot_surface[f, e] == g and ll[f] > rel_in[g]:
-                        rel_in[g] = ll[f]
+            if g >= 0 and dec[g, D_ACTIVE] != 1.0:
+                n_new += 1
+                new_g = g
+        if n_new == 0:
+            for g in range(ns):
+                if ll[f] > base[g]:
+                    base[g] = ll[f]
+        elif n_new == 1:
+            p_new[new_g] += probs[f]
+            if ll[f] > rel_in[new_g]:
+                rel_in[new_g] = ll[f]
 
 
 @njit(cache=True, error_model="numpy")
@@ -1030,6 +1040,8 @@ def _bank_kernel(
     ll_out = np.empty(ns)
     rel_in = np.empty(ns)
     rel_base = np.empty(ns)
+    p_new = np.empty(ns)
+    iso = np.empty(ns)
     best_in = np.full(ns, -1, dtype=np.int64)
     probs = st[lay_probs : lay_probs + nh]
     u_last = st[lay_u : lay_u + m]
@@ -1146,7 +1158,16 @@ def _bank_kernel(
                         best_in[g] = f
                 elif ll[f] > ll_out[g]:
                     ll_out[g] = ll[f]
-        _relevant_loglik(bank, dec, ll, rel_in, rel_base)
+        _relevant_loglik(bank, dec, ll, probs, rel_in, rel_base, p_new)
+        # isolation odds of each surface not in fault against its strongest competitor among
+        # the other surfaces not in fault, on the probabilities of "it is the only new fault"
+        for g in range(ns):
+            comp = 0.0
+            for o in range(ns):
+                if o != g and dec[o, D_ACTIVE] != 1.0 and p_new[o] > comp:
+                    comp = p_new[o]
+            tot = p_new[g] + comp
+            iso[g] = p_new[g] / tot if tot > 0.0 else 0.0
         n_active_before = 0
         for h in range(ns):
             if dec[h, D_ACTIVE] == 1.0:
@@ -1168,6 +1189,7 @@ def _bank_kernel(
                 tk,
                 dt,
                 pm[h],
+                iso[h],
                 defl,
                 vsum[h] / pm[h],
                 cmd,
