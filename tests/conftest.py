@@ -30,6 +30,25 @@ def _pg_available() -> str | None:
 _PG_PROBLEM = _pg_available()
 
 
+@pytest.fixture(scope="session", autouse=True)
+def kernels_prepared_beside_the_tests() -> Iterator[None]:
+    """Every estimator kind's kernels prepared from the session's start, one kind at a time in
+    a child process beside the tests (the server's own warm-up, ``app.kernels``).
+
+    On a cold numba cache (a fresh clone) whichever test first applied a kind used to wait for
+    its whole compile, and each test's server that stopped meanwhile threw its half-done compile
+    away; now the compiles overlap the tests, the servers' children wait for the compile lock
+    and load from the cache, and this process holds every kernel once it is done.
+    """
+    from app.kernels import KernelWarmup
+    from estimators.registry import ESTIMATORS
+
+    warmup = KernelWarmup(list(ESTIMATORS), processes=1)
+    warmup.start()
+    yield
+    warmup.stop()
+
+
 @contextmanager
 def migrated_pg_schema() -> Iterator[str]:
     """A fresh schema in the test PostgreSQL, migrated to head, dropped afterwards (the test is
