@@ -11,6 +11,11 @@ prepares every estimator kind, cheapest and most used first (:data:`COMPILE_ORDE
   loads each finished kind from the cache and marks it ready;
 * with ``processes == 0`` the server compiles each kind itself, in a thread.
 
+A child compiles a kind holding an exclusive lock on a file beside the stamps
+(``fleethealth-kernels-KIND.lock``): several processes starting at once on a cold cache (an
+API and its workers, a test session) compile each kind once; the others wait for the lock and
+then load the kind from the cache just filled (a lock dies with its holder, however it died).
+
 Children because a SIGTERM must end the server within seconds at any moment: a compile running
 in a thread of the server cannot be interrupted, a child is killed at once; and numba's compiler,
 mostly Python, would otherwise hold the server's interpreter lock while requests wait. A child
@@ -26,6 +31,8 @@ demand, or fails the stream with the error: never silently pending).
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import hashlib
 import logging
 import os
@@ -35,7 +42,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any, Literal
@@ -116,6 +123,44 @@ def warm_kind(kind: str) -> None:
     from estimators.registry import get_estimator
 
     get_estimator(kind).warm_up()
+
+
+@contextlib.contextmanager
+def compile_lock(kind: str) -> Iterator[None]:
+    """Hold the kind's compile lock (waiting for another process that holds it); no lock when
+    numba's cache directory is not writable."""
+    where = stamp_dir()
+    if where is None:
+        yield
+        return
+    with open(where / f"fleethealth-kernels-{kind}.lock", "a") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)  # released when the file closes or the process dies
+        yield
+
+
+def _stamp_path(stamps: Path | None, kind: str) -> Path | None:
+    return None if stamps is None else stamps / f"fleethealth-kernels-{kind}.stamp"
+
+
+def is_cached(stamps: Path | None, kind: str, fingerprint: str | None) -> bool:
+    """Whether numba's cache holds this kind, compiled from the sources of ``fingerprint``."""
+    path = _stamp_path(stamps, kind)
+    try:
+        return path is not None and fingerprint is not None and path.read_text() == fingerprint
+    except OSError:
+        return False
+
+
+def write_stamp(stamps: Path | None, kind: str, fingerprint: str | None) -> None:
+    path = _stamp_path(stamps, kind)
+    if path is None or fingerprint is None:
+        return
+    try:
+        tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+        tmp.write_text(fingerprint)
+        tmp.replace(path)
+    except OSError:
+        log.warning("cannot write %s; the next start compiles %s again", path, kind)
 
 
 class KernelWarmup:
@@ -227,7 +272,7 @@ class KernelWarmup:
         except Exception as exc:
             self._finish(kind, f"{type(exc).__name__}: {exc}")
             return
-        self._write_stamp(kind)
+        write_stamp(self._stamps, kind, self._fingerprint)
         self._finish(kind)
 
     def _read_stamps(self) -> None:
@@ -237,27 +282,8 @@ class KernelWarmup:
         except Exception:
             log.exception("cannot tell whether numba's cache is warm; compiling every kind")
 
-    def _stamp(self, kind: str) -> Path | None:
-        return None if self._stamps is None else self._stamps / f"fleethealth-kernels-{kind}.stamp"
-
     def _cached(self, kind: str) -> bool:
-        """Whether numba's cache holds this kind, compiled from these very sources."""
-        path = self._stamp(kind)
-        try:
-            return path is not None and path.read_text() == self._fingerprint
-        except OSError:
-            return False
-
-    def _write_stamp(self, kind: str) -> None:
-        path = self._stamp(kind)
-        if path is None or self._fingerprint is None:
-            return
-        try:
-            tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
-            tmp.write_text(self._fingerprint)
-            tmp.replace(path)
-        except OSError:
-            log.warning("cannot write %s; the next start compiles %s again", path, kind)
+        return is_cached(self._stamps, kind, self._fingerprint)
 
     def _run_in_thread(self) -> None:
         self._read_stamps()
@@ -282,7 +308,12 @@ class KernelWarmup:
         try:
             while (queue or self._children) and not self._stop.is_set():
                 while queue and len(self._children) < self.processes:
-                    self._spawn(queue.pop(0))
+                    kind = queue.pop(0)
+                    if self._cached(kind):  # another process compiled it meanwhile
+                        self._set(kind, "loading", started_s=time.monotonic())
+                        self._load(kind)
+                    else:
+                        self._spawn(kind)
                 finished = [(k, p, e) for k, (p, e) in self._children.items() if p.poll() is not None]
                 if not finished:
                     self._stop.wait(POLL_S)
@@ -337,13 +368,18 @@ def _exit_when_parent_goes() -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m app.kernels [--exit-on-stdin-eof] KIND...``: compile the kinds' kernels into
-    numba's cache (the server runs it with its end of the child's stdin kept open)."""
+    numba's cache, each under its compile lock, and stamp them (the server runs it with its end
+    of the child's stdin kept open). A kind stamped by another process meanwhile is skipped."""
     kinds = sys.argv[1:] if argv is None else list(argv)
     if kinds[:1] == ["--exit-on-stdin-eof"]:
         kinds = kinds[1:]
         threading.Thread(target=_exit_when_parent_goes, daemon=True).start()
+    fingerprint, stamps = sources_fingerprint(), stamp_dir()
     for kind in kinds:
-        warm_kind(kind)
+        with compile_lock(kind):
+            if not is_cached(stamps, kind, fingerprint):
+                warm_kind(kind)
+                write_stamp(stamps, kind, fingerprint)
     return 0
 
 

@@ -657,7 +657,7 @@ def identify_arx(
         raise EstimatorError("current and voltage must be 1-D arrays of the same length")
     acc = np.zeros(kern.ACC_LEN, dtype=np.float64)
     kern.acc_accumulate(acc, cur, volt)
-    fit = kern.acc_solve(acc, 0, float(condition_limit), float(min_current_std), float(MIN_ROWS))
+    fit = kern.acc_solve(acc, float(condition_limit), float(min_current_std), float(MIN_ROWS))
     return _fit_from_vector(fit)
 
 

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import shutil
+import tempfile
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -28,6 +30,41 @@ def _pg_available() -> str | None:
 
 
 _PG_PROBLEM = _pg_available()
+
+
+@pytest.fixture(scope="session", autouse=True)
+def kernels_prepared_beside_the_tests() -> Iterator[None]:
+    """Every estimator kind's kernels prepared from the session's start, one kind at a time in
+    a child process beside the tests (the server's own warm-up, ``app.kernels``).
+
+    On a cold numba cache (a fresh clone) whichever test first applied a kind used to wait for
+    its whole compile, and each test's server that stopped meanwhile threw its half-done compile
+    away; now the compiles overlap the tests, the servers' children wait for the compile lock
+    and load from the cache, and this process holds every kernel once it is done.
+    """
+    from app.kernels import KernelWarmup
+    from estimators.registry import ESTIMATORS
+
+    warmup = KernelWarmup(list(ESTIMATORS), processes=1)
+    warmup.start()
+    yield
+    warmup.stop()
+
+
+_SQLITE_TEMPLATE: list[str] = []
+
+
+def migrated_sqlite(path: os.PathLike[str] | str) -> str:
+    """The URL of a SQLite file at ``path`` migrated to head: a copy of one file that Alembic
+    migrated once per session (the same bytes as migrating each file, without the cost)."""
+    from app.migrate import upgrade
+
+    if not _SQLITE_TEMPLATE:
+        template = os.path.join(tempfile.mkdtemp(prefix="fleethealth-schema-"), "template.db")
+        upgrade(f"sqlite:///{template}")
+        _SQLITE_TEMPLATE.append(template)
+    shutil.copyfile(_SQLITE_TEMPLATE[0], path)
+    return f"sqlite:///{path}"
 
 
 @contextmanager
@@ -57,12 +94,8 @@ def migrated_pg_schema() -> Iterator[str]:
 @pytest.fixture(params=["sqlite", pytest.param("postgres", marks=pytest.mark.postgres)])
 def db_url(request: pytest.FixtureRequest, tmp_path) -> Iterator[str]:  # type: ignore[no-untyped-def]
     """A migrated, empty database: a SQLite file, or a fresh schema in PostgreSQL."""
-    from app.migrate import upgrade
-
     if request.param == "sqlite":
-        url = f"sqlite:///{tmp_path / 'fleethealth.db'}"
-        upgrade(url)
-        yield url
+        yield migrated_sqlite(tmp_path / "fleethealth.db")
         return
     with migrated_pg_schema() as url:
         yield url

@@ -11,15 +11,12 @@ from app.alarms import schemas, service
 from app.alarms.repository import AlarmFilter
 from app.deps import ReadDep, ReadSessionDep, WriteSessionDep
 from app.errors import error_responses
+from app.events.router import wake_fleet_subscribers
 from app.telemetry.validation import Identifier
 
 router = APIRouter(prefix="/v1", tags=["alarms"])
 
 
-def _wake_subscribers(request: Request, operator_id: int) -> None:
-    """After the commit: this process's fleet subscribers read the new event at once (those
-    of other processes find it at their next poll)."""
-    request.app.state.processor.hub.publish_fleet([{"_operator_id": operator_id, "type": "alarm"}])
 AlarmId = Annotated[int, Path(ge=1, le=2**53)]
 
 
@@ -70,7 +67,7 @@ def acknowledge_alarm(
     """active -> acknowledged (409 otherwise), recording who, when and the comment."""
     body = body or schemas.AlarmAction()
     alarm = service.acknowledge(s, p, alarm_id, body.comment, body.by)
-    tasks.add_task(_wake_subscribers, request, p.operator_id)
+    tasks.add_task(wake_fleet_subscribers, request, p.operator_id)
     return schemas.AlarmPublic.model_validate(alarm)
 
 
@@ -91,5 +88,5 @@ def clear_alarm(
     the comment. An alarm also clears itself when its cause ends (`cleared_by: rule`)."""
     body = body or schemas.AlarmAction()
     alarm = service.clear(s, p, alarm_id, body.comment, body.by)
-    tasks.add_task(_wake_subscribers, request, p.operator_id)
+    tasks.add_task(wake_fleet_subscribers, request, p.operator_id)
     return schemas.AlarmPublic.model_validate(alarm)

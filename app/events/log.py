@@ -24,6 +24,8 @@ from app.webhooks import service as webhooks
 ALARM_EVENT_TYPES = frozenset(
     {"alarm_raised", "alarm_updated", "alarm_acknowledged", "alarm_cleared"}
 )
+# People's actions on an actuator's life: a maintenance action recorded, a new config version.
+ASSET_EVENT_TYPES = frozenset({"maintenance_recorded", "config_changed"})
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Query, Request
 
 from app.deps import ReadDep, ReadSessionDep
 from app.errors import InvalidConfig, error_responses
@@ -12,6 +12,12 @@ from app.events import schemas, service
 from app.telemetry.validation import Identifier
 
 router = APIRouter(prefix="/v1", tags=["events"])
+
+
+def wake_fleet_subscribers(request: Request, operator_id: int) -> None:
+    """After a request's commit logged events (a background task): this process's fleet
+    subscribers read them at once (those of other processes find them at their next poll)."""
+    request.app.state.processor.hub.publish_fleet([{"_operator_id": operator_id, "type": "logged"}])
 
 
 def _split(values: list[str] | None) -> list[str] | None:

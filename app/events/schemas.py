@@ -10,7 +10,10 @@ from pydantic import BaseModel, ConfigDict, Field
 class FleetEvent(BaseModel):
     """One logged fleet event. Besides these fields each type carries its own: ``from``,
     ``to``, ``reasons`` (``status_changed``); ``estimator``, ``detail`` (estimator events);
-    ``alarm`` and ``cause_event_id`` (alarm events)."""
+    ``alarm`` and ``cause_event_id`` (alarm events); ``maintenance_id``, ``action``,
+    ``performed_by``, ``performed_at``, ``comment``, ``baseline``, ``from_seq``,
+    ``status_before`` (``maintenance_recorded``); ``estimator``, ``version``, ``from_seq``,
+    ``state``, ``comment`` (``config_changed``)."""
 
     model_config = ConfigDict(extra="allow")
     id: int = Field(description="Increasing per operator: the cursor to resume after")

@@ -11,14 +11,14 @@ from sqlalchemy.orm import Session
 from app.alarms import service as alarms
 from app.db import Database
 from app.events import repository
-from app.events.log import ALARM_EVENT_TYPES, NewEvent, row_public
+from app.events.log import ALARM_EVENT_TYPES, ASSET_EVENT_TYPES, NewEvent, row_public
 from app.websocket.hub import DEFAULT_FLEET_TYPES, StreamMeta, fleet_events
 
 if TYPE_CHECKING:
     from app.processing.service import ApplyResult
 
 # Every type the log holds (``applied``, one per batch, is pushed live only).
-LOGGED_TYPES = frozenset({*DEFAULT_FLEET_TYPES, *ALARM_EVENT_TYPES})
+LOGGED_TYPES = frozenset({*DEFAULT_FLEET_TYPES, *ALARM_EVENT_TYPES, *ASSET_EVENT_TYPES})
 ROUTING_KEYS = frozenset({"_operator_id", "type", "tail", "actuator_id", "seq", "t_s"})
 
 

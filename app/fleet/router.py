@@ -6,11 +6,12 @@ from __future__ import annotations
 from datetime import timedelta
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, BackgroundTasks, Query, Request
 from sqlalchemy.orm import Session
 
 from app.deps import AdminDep, ReadDep, ReadSessionDep, SettingsDep, WriteSessionDep
 from app.errors import error_responses
+from app.events.router import wake_fleet_subscribers
 from app.fleet import schemas, service
 from app.fleet.service import FleetSort
 from app.models import Actuator
@@ -144,19 +145,28 @@ def get_actuator(tail: str, actuator_id: str, s: ReadSessionDep, p: ReadDep) -> 
 
 @router.patch(ACT, response_model=schemas.ActuatorUpdated, responses=error_responses(401, 403, 404, 410, 422))
 def update_actuator(
-    tail: str, actuator_id: str, body: schemas.ActuatorUpdate, s: WriteSessionDep, p: AdminDep
+    tail: str,
+    actuator_id: str,
+    body: schemas.ActuatorUpdate,
+    request: Request,
+    tasks: BackgroundTasks,
+    s: WriteSessionDep,
+    p: AdminDep,
 ) -> schemas.ActuatorUpdated:
     """Change estimator settings, thresholds included (admin scope).
 
     The settings given are merged onto each estimator's current configuration and validated by
     its kind's config model (422 names the problem). Each changed estimator gets a new config
     version, in force from the next batch the processor applies (`from_seq`); outputs say which
-    version produced them. The estimator carries its state over, unless `reset_state`.
+    version produced them. The estimator carries its state over, unless `reset_state`. Each
+    version is logged as a `config_changed` fleet event (and a reset that changes the status as
+    `status_changed`).
     """
     act = service.get_actuator(s, p.operator_id, tail, actuator_id)
     versions = service.update_estimators(
         s, act, body.estimators, reset_state=body.reset_state, comment=body.comment, key_id=p.key_id
     )
+    tasks.add_task(wake_fleet_subscribers, request, p.operator_id)
     return schemas.ActuatorUpdated(
         actuator=_actuator_public(act, s),
         versions=[schemas.ConfigVersionPublic.model_validate(v) for v in versions],
@@ -205,7 +215,13 @@ def list_config_versions(
     responses=error_responses(401, 403, 404, 409, 410, 422),
 )
 def record_maintenance(
-    tail: str, actuator_id: str, body: schemas.MaintenanceCreate, s: WriteSessionDep, p: AdminDep
+    tail: str,
+    actuator_id: str,
+    body: schemas.MaintenanceCreate,
+    request: Request,
+    tasks: BackgroundTasks,
+    s: WriteSessionDep,
+    p: AdminDep,
 ) -> schemas.MaintenancePublic:
     """Record an inspection, repair or replacement (admin scope).
 
@@ -214,7 +230,8 @@ def record_maintenance(
     of the old part is cleared; outputs before and after carry their baseline number. Batches
     of the old part logged but not yet applied are applied to the old baseline first (a second
     repair or replacement meanwhile answers 409 `MaintenancePending`). An `inspection` changes
-    nothing but the record.
+    nothing but the record. Every action is logged as a `maintenance_recorded` fleet event (and a
+    restart that changes the status at once as `status_changed`).
     """
     row = service.record_maintenance(
         s,
@@ -227,6 +244,7 @@ def record_maintenance(
         comment=body.comment,
         key_id=p.key_id,
     )
+    tasks.add_task(wake_fleet_subscribers, request, p.operator_id)
     return schemas.MaintenancePublic.model_validate(row)
 
 

@@ -13,6 +13,8 @@ from sqlalchemy.orm import Session
 
 from app.alarms import service as alarms
 from app.errors import AlreadyExists, Gone, InvalidConfig, MaintenancePending, NotFound
+from app.events import repository as event_repository
+from app.events.log import NewEvent
 from app.faults import service as faults
 from app.fleet import repository
 from app.fleet.repository import BoardRow
@@ -216,6 +218,30 @@ def _stream_status(stream: Stream, ests: list[EstimatorState]) -> None:
     stream.updated_at = utcnow()
 
 
+def _log_asset_events(
+    session: Session,
+    act: Actuator,
+    stream: Stream,
+    events: list[tuple[str, dict[str, Any]]],
+    status_before: str,
+    ests: list[EstimatorState],
+) -> None:
+    """Log a person's change to the actuator as fleet events, in the change's transaction: each
+    ``(type, body)`` given, then ``status_changed`` when the change restarted the estimators at
+    once and so changed the status (the alarm rules see it, as after an apply). A restart that
+    waits for pending batches changes the status when the processor applies it."""
+    operator_id, tail, actuator_id = event_repository.stream_owner(session, act.id)
+
+    def new(type_: str, body: dict[str, Any]) -> NewEvent:
+        return NewEvent(type=type_, tail=tail, actuator_id=actuator_id, actuator_pk=act.id, body=body)
+
+    logged = [new(t, b) for t, b in events]
+    if stream.status != status_before:
+        reasons = [r for er in ests for r in er.reasons]
+        logged.append(new("status_changed", {"from": status_before, "to": stream.status, "reasons": reasons}))
+    alarms.log_with_alarms(session, operator_id, act.id, tail, actuator_id, logged)
+
+
 def update_estimators(
     session: Session,
     act: Actuator,
@@ -235,6 +261,7 @@ def update_estimators(
     if not changes:
         raise InvalidConfig("estimators: name at least one estimator and the settings to change")
     stream = repository.lock_stream(session, act.id)
+    status_before = stream.status
     ests = {er.estimator: er for er in repository.estimator_rows(session, act.id)}
     unknown = [n for n in changes if n not in ests]
     if unknown:
@@ -275,6 +302,26 @@ def update_estimators(
         stream.rul_t_s = stream.rul_q05_s = stream.rul_q50_s = None
         _stream_status(stream, list(ests.values()))
     session.flush()
+    _log_asset_events(
+        session,
+        act,
+        stream,
+        [
+            (
+                "config_changed",
+                {
+                    "estimator": v.estimator,
+                    "version": v.version,
+                    "from_seq": v.from_seq,
+                    "state": v.state,
+                    "comment": v.comment,
+                },
+            )
+            for v in versions
+        ],
+        status_before,
+        list(ests.values()),
+    )
     return versions
 
 
@@ -353,6 +400,28 @@ def record_maintenance(
         recorded_by_key_id=key_id,
     )
     repository.add(session, row)
+    _log_asset_events(
+        session,
+        act,
+        stream,
+        [
+            (
+                "maintenance_recorded",
+                {
+                    "maintenance_id": row.id,
+                    "action": row.action,
+                    "performed_by": row.performed_by,
+                    "performed_at": row.performed_at,
+                    "comment": row.comment,
+                    "baseline": row.baseline,
+                    "from_seq": row.from_seq,
+                    "status_before": status_before,
+                },
+            )
+        ],
+        status_before,
+        ests,
+    )
     return row
 
 

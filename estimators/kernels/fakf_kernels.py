@@ -193,7 +193,6 @@ NIS_HI = 5.023886187314888
 @njit(cache=True, error_model="numpy")
 def acc_add_row(
     acc: FloatArray,
-    off: int,
     v1: float,
     v2: float,
     i0: float,
@@ -201,32 +200,33 @@ def acc_add_row(
     i2: float,
     y: float,
 ) -> None:
-    """Add one regression row ``phi = [-v1, -v2, i0, i1, i2]``, target ``y`` (eq. 15)."""
+    """Add one regression row ``phi = [-v1, -v2, i0, i1, i2]``, target ``y`` (eq. 15), to the
+    accumulator block ``acc`` (``ACC_LEN`` floats, e.g. a view of a state vector)."""
     p0 = -v1
     p1 = -v2
-    acc[off + 0] += p0 * p0
-    acc[off + 1] += p0 * p1
-    acc[off + 2] += p0 * i0
-    acc[off + 3] += p0 * i1
-    acc[off + 4] += p0 * i2
-    acc[off + 5] += p1 * p1
-    acc[off + 6] += p1 * i0
-    acc[off + 7] += p1 * i1
-    acc[off + 8] += p1 * i2
-    acc[off + 9] += i0 * i0
-    acc[off + 10] += i0 * i1
-    acc[off + 11] += i0 * i2
-    acc[off + 12] += i1 * i1
-    acc[off + 13] += i1 * i2
-    acc[off + 14] += i2 * i2
-    acc[off + 15] += p0 * y
-    acc[off + 16] += p1 * y
-    acc[off + 17] += i0 * y
-    acc[off + 18] += i1 * y
-    acc[off + 19] += i2 * y
-    acc[off + 20] += y * y
-    acc[off + 21] += i0
-    acc[off + 22] += 1.0
+    acc[0] += p0 * p0
+    acc[1] += p0 * p1
+    acc[2] += p0 * i0
+    acc[3] += p0 * i1
+    acc[4] += p0 * i2
+    acc[5] += p1 * p1
+    acc[6] += p1 * i0
+    acc[7] += p1 * i1
+    acc[8] += p1 * i2
+    acc[9] += i0 * i0
+    acc[10] += i0 * i1
+    acc[11] += i0 * i2
+    acc[12] += i1 * i1
+    acc[13] += i1 * i2
+    acc[14] += i2 * i2
+    acc[15] += p0 * y
+    acc[16] += p1 * y
+    acc[17] += i0 * y
+    acc[18] += i1 * y
+    acc[19] += i2 * y
+    acc[20] += y * y
+    acc[21] += i0
+    acc[22] += 1.0
 
 
 @njit(cache=True, error_model="numpy")
@@ -247,7 +247,7 @@ def acc_accumulate(acc: FloatArray, current: FloatArray, voltage: FloatArray) ->
             and math.isfinite(i2)
             and math.isfinite(y)
         ):
-            acc_add_row(acc, 0, v1, v2, i0, i1, i2, y)
+            acc_add_row(acc, v1, v2, i0, i1, i2, y)
 
 
 @njit(cache=True, error_model="numpy")
@@ -262,7 +262,7 @@ def max_pole_modulus(a0: float, a1: float) -> float:
 
 @njit(cache=True, error_model="numpy")
 def acc_solve(
-    acc: FloatArray, off: int, cond_limit: float, min_current_std: float, min_rows: float
+    acc: FloatArray, cond_limit: float, min_current_std: float, min_rows: float
 ) -> FloatArray:
     """Least-squares coefficients from an accumulator block, with the checks of the fit.
 
@@ -274,13 +274,13 @@ def acc_solve(
         float64 vector of length ``FIT_LEN``; ``FIT_REASON`` is ``FIT_OK`` or the failure code.
     """
     out = np.full(FIT_LEN, np.nan)
-    n = acc[off + ACC_N]
+    n = acc[ACC_N]
     out[FIT_ROWS] = n
     if n < min_rows:
         out[FIT_REASON] = FIT_TOO_FEW_ROWS
         return out
-    mean_i = acc[off + ACC_SUM_I] / n
-    var_i = acc[off + ACC_G + _TRI[2, 2]] / n - mean_i * mean_i
+    mean_i = acc[ACC_SUM_I] / n
+    var_i = acc[ACC_G + _TRI[2, 2]] / n - mean_i * mean_i
     i_std = math.sqrt(max(var_i, 0.0))
     out[FIT_I_STD] = i_std
     if i_std < min_current_std:
@@ -288,7 +288,7 @@ def acc_solve(
         return out
     d = np.empty(N_COEF)
     for i in range(N_COEF):
-        gii = acc[off + ACC_G + _TRI[i, i]]
+        gii = acc[ACC_G + _TRI[i, i]]
         if not gii > 0.0:
             out[FIT_COND] = np.inf
             out[FIT_REASON] = FIT_ILL_CONDITIONED
@@ -297,7 +297,7 @@ def acc_solve(
     c = np.empty((N_COEF, N_COEF))
     for i in range(N_COEF):
         for j in range(N_COEF):
-            c[i, j] = acc[off + ACC_G + _TRI[i, j]] / (d[i] * d[j])
+            c[i, j] = acc[ACC_G + _TRI[i, j]] / (d[i] * d[j])
     eig = np.linalg.eigvalsh(c)
     cond = np.inf if eig[0] <= 0.0 else eig[N_COEF - 1] / eig[0]
     out[FIT_COND] = cond
@@ -319,7 +319,7 @@ def acc_solve(
             low[i, j] = t / ljj
     w = np.empty(N_COEF)
     for i in range(N_COEF):
-        t = acc[off + ACC_B + i] / d[i]
+        t = acc[ACC_B + i] / d[i]
         for m in range(i):
             t -= low[i, m] * w[m]
         w[i] = t / low[i, i]
@@ -332,7 +332,7 @@ def acc_solve(
     theta = z / d
     for i in range(N_COEF):
         out[FIT_COEF + i] = theta[i]
-    out[FIT_RESID_RMS] = residual_rms(acc, off, theta)
+    out[FIT_RESID_RMS] = residual_rms(acc, theta)
     pole = max_pole_modulus(theta[0], theta[1])
     out[FIT_POLE] = pole
     out[FIT_REASON] = FIT_UNSTABLE if not pole < 1.0 else FIT_OK
@@ -340,36 +340,36 @@ def acc_solve(
 
 
 @njit(cache=True, error_model="numpy")
-def residual_rms(acc: FloatArray, off: int, theta: FloatArray) -> float:
+def residual_rms(acc: FloatArray, theta: FloatArray) -> float:
     """RMS of the one-step residual ``V_k - phi_k^T theta`` over the rows of an accumulator
     block, from its sums alone: ``SSE = y'y - 2 theta'b + theta' G theta`` (NaN without rows)."""
-    n = acc[off + ACC_N]
+    n = acc[ACC_N]
     if not n > 0.0:
         return np.nan
-    sse = acc[off + ACC_YY]
+    sse = acc[ACC_YY]
     for i in range(N_COEF):
-        sse -= 2.0 * theta[i] * acc[off + ACC_B + i]
+        sse -= 2.0 * theta[i] * acc[ACC_B + i]
         for j in range(N_COEF):
-            sse += theta[i] * acc[off + ACC_G + _TRI[i, j]] * theta[j]
+            sse += theta[i] * acc[ACC_G + _TRI[i, j]] * theta[j]
     return math.sqrt(max(sse, 0.0) / n)
 
 
 @njit(cache=True, error_model="numpy")
-def prediction_drift(acc: FloatArray, off: int, theta_w: FloatArray, theta_b: FloatArray) -> float:
+def prediction_drift(acc: FloatArray, theta_w: FloatArray, theta_b: FloatArray) -> float:
     """RMS difference of two models' one-step predictions over a window, relative to the RMS of
     the window's voltage: ``sqrt(d' G d / n) / sqrt(y'y / n)``, ``d = theta_w - theta_b``.
 
     Computed from the window's Gram matrix alone, so it needs no sample buffer.
     """
-    n = acc[off + ACC_N]
-    yy = acc[off + ACC_YY]
+    n = acc[ACC_N]
+    yy = acc[ACC_YY]
     if not (n > 0.0 and yy > 0.0):
         return np.nan
     quad = 0.0
     for i in range(N_COEF):
         di = theta_w[i] - theta_b[i]
         for j in range(N_COEF):
-            quad += di * acc[off + ACC_G + _TRI[i, j]] * (theta_w[j] - theta_b[j])
+            quad += di * acc[ACC_G + _TRI[i, j]] * (theta_w[j] - theta_b[j])
     return math.sqrt(max(quad, 0.0) / yy)
 
 
@@ -505,7 +505,8 @@ def _close_window(
         prior_rms = math.sqrt(st[ST_W_SUM_PRIOR2_PAIRED] / n_paired)
         row[WIN_PERSIST_RMS] = persist_rms
         row[WIN_PRIOR_RMS_PAIRED] = prior_rms
-    fit = acc_solve(st, ST_WG, cfg[CFG_COND_LIMIT], cfg[CFG_MIN_CURRENT_STD], cfg[CFG_MIN_ROWS])
+    wacc = st[ST_WG : ST_WG + ACC_LEN]
+    fit = acc_solve(wacc, cfg[CFG_COND_LIMIT], cfg[CFG_MIN_CURRENT_STD], cfg[CFG_MIN_ROWS])
     theta_w = fit[FIT_COEF : FIT_COEF + N_COEF]
     # Window coefficients are reported when the window's data support a fit, even if its
     # poles are outside the unit circle: an unstable window model is itself a sign of change.
@@ -516,11 +517,11 @@ def _close_window(
         row[WIN_POLE] = dominant_pole(theta_w[0], theta_w[1])
         if st[ST_READY] == 1.0:
             row[WIN_DRIFT] = prediction_drift(
-                st, ST_WG, theta_w, st[ST_BASE_COEF : ST_BASE_COEF + N_COEF]
+                wacc, theta_w, st[ST_BASE_COEF : ST_BASE_COEF + N_COEF]
             )
     if st[ST_READY] == 1.0 and st[ST_WG + ACC_N] >= cfg[CFG_MIN_SCORED]:
         # how well the reference (first) model still predicts, whatever model is in use
-        row[WIN_REF_RESID_RMS] = residual_rms(st, ST_WG, st[ST_BASE_COEF : ST_BASE_COEF + N_COEF])
+        row[WIN_REF_RESID_RMS] = residual_rms(wacc, st[ST_BASE_COEF : ST_BASE_COEF + N_COEF])
     has_event = False
     judged = (
         st[ST_READY] == 1.0
@@ -739,6 +740,7 @@ def _fakf_kernel(
     t_last = st[ST_T_LAST]
     id_count = st[ST_ID_COUNT]
     iacc = st[ST_ID : ST_ID + ACC_LEN].copy()
+    wacc = st[ST_WG : ST_WG + ACC_LEN]  # a view: rows go into the state itself
 
     for k in range(n):
         tk = t[k]
@@ -770,9 +772,9 @@ def _fakf_kernel(
             and math.isfinite(v1)
             and math.isfinite(v2)
         ):
-            acc_add_row(st, ST_WG, v1, v2, ik, i1, i2, vk)
+            acc_add_row(wacc, v1, v2, ik, i1, i2, vk)
             if not ready:
-                acc_add_row(iacc, 0, v1, v2, ik, i1, i2, vk)
+                acc_add_row(iacc, v1, v2, ik, i1, i2, vk)
         ih = ik if math.isfinite(ik) else ih1
         # --- filter, eqs. 7-11 and 16
         if ready and restart:
@@ -890,7 +892,7 @@ def _fakf_kernel(
             id_count += 1.0
             if id_count >= n_ident:
                 fit = acc_solve(
-                    iacc, 0, cfg[CFG_COND_LIMIT], cfg[CFG_MIN_CURRENT_STD], cfg[CFG_MIN_ROWS]
+                    iacc, cfg[CFG_COND_LIMIT], cfg[CFG_MIN_CURRENT_STD], cfg[CFG_MIN_ROWS]
                 )
                 ev = events[n_ev]
                 ev[:] = np.nan

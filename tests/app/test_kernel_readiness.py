@@ -153,3 +153,27 @@ def test_child_exits_when_its_parent_goes() -> None:
     assert proc.stdin is not None
     proc.stdin.close()
     assert proc.wait(WAIT_S) == 3
+
+
+def _waits_for_a_lock(pid: int) -> bool:
+    """Whether process ``pid`` is queued behind a file lock (Linux ``/proc/locks``, ``->``)."""
+    return any("->" in line and f" {pid} " in f" {line} " for line in Path("/proc/locks").read_text().splitlines())
+
+
+def test_a_child_waits_for_the_compile_lock_then_skips_a_kind_stamped_meanwhile(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Processes starting together on a cold cache compile a kind once: a second compiling child
+    queues behind the first's lock and, once the kind is stamped, loads nothing and exits."""
+    monkeypatch.setattr(app.kernels, "stamp_dir", lambda: tmp_path)
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}  # the child's stamp_dir
+    with app.kernels.compile_lock("fakf"):  # as a first child compiling fakf holds it
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "app.kernels", "fakf"], env=env,
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+        )
+        _until(lambda: _waits_for_a_lock(proc.pid) or proc.poll() is not None, what="child queued")
+        assert proc.poll() is None, "the child did not wait for the lock"
+        app.kernels.write_stamp(tmp_path, "fakf", app.kernels.sources_fingerprint())
+    assert proc.wait(WAIT_S) == 0, proc.stderr.read() if proc.stderr else ""
+    assert not list(tmp_path.rglob("*.nbi")), "the child compiled a kind stamped while it waited"

@@ -34,3 +34,23 @@ def test_applying_batches_compiles_nothing_new(api: Api) -> None:
         assert r.status_code == 202
     assert api.health()["last_applied_seq"] == 3
     assert _signatures() == before
+
+
+def test_each_fakf_kernel_is_compiled_for_one_signature() -> None:
+    """numba compiles a kernel once per distinct argument types, and a constant integer
+    argument (an offset such as 0 or a layout index) is typed as its own literal: the kernels
+    take views of their blocks instead, so the whole-array entry (``identify_arx``), the warm-up
+    and the streaming kernel all use one compiled version of each."""
+    from app.kernels import warm_kind
+    from estimators import fakf
+    from estimators.kernels import fakf_kernels
+
+    warm_kind("fakf")
+    s = make_series(600, seed=8)
+    fakf.identify_arx(s.current, s.voltage)
+    counts = {
+        name: len(obj.signatures)
+        for name, obj in vars(fakf_kernels).items()
+        if isinstance(obj, CPUDispatcher) and obj.signatures
+    }
+    assert counts and all(n == 1 for n in counts.values()), counts

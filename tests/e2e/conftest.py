@@ -15,6 +15,8 @@ from pathlib import Path
 import httpx
 import pytest
 
+from tests.conftest import migrated_sqlite
+
 ROOT = Path(__file__).resolve().parents[2]
 FLEETHEALTH = str(Path(sys.executable).parent / "fleethealth")
 E2E_KEY = "e2e-admin-key-0123456789abcdef"
@@ -91,11 +93,7 @@ class LiveServer:
 @pytest.fixture
 def live_server(tmp_path: Path) -> Iterator[LiveServer]:
     """A migrated SQLite file served by a real uvicorn process."""
-    from app.migrate import upgrade
-
-    url = f"sqlite:///{tmp_path / 'e2e.db'}"
-    upgrade(url)
-    server = LiveServer(url, tmp_path / "server.log")
+    server = LiveServer(migrated_sqlite(tmp_path / "e2e.db"), tmp_path / "server.log")
     server.start()
     yield server
     server.stop()

@@ -18,6 +18,7 @@ from fleethealth_client import FleetHealthClient
 
 from fleethealth_tools.showcase import SHA_EMA_ACTUATOR, feed_showcase_fleet
 from fleethealth_tools.simulate import run_simulation
+from tests.conftest import make_series
 from tests.e2e.conftest import LiveServer
 
 playwright_api = pytest.importorskip("playwright.sync_api")
@@ -231,3 +232,41 @@ def test_a_page_without_data_says_so(server: LiveServer, read_key: str, page: An
         page.wait_for_selector(f'[data-chart="{chart}"] .empty', timeout=WAIT_MS)
         assert page.inner_text(f'[data-chart="{chart}"] .empty') == "no data yet"
     assert "learning" in page.inner_text("#facts")
+
+
+def test_an_actuator_page_follows_new_telemetry_live(server: LiveServer, read_key: str, page: Any) -> None:
+    # The page is open before the actuator has data; it learns of each batch from the fleet-event
+    # stream (it does not poll) and is never reloaded.
+    fakf = {"fakf": {"identification_samples": 300, "health_window_samples": 250}}
+    with FleetHealthClient(server.url, server.api_key, timeout=60.0) as client:
+        client.create_aircraft("LIVE-1")
+        client.create_actuator("LIVE-1", "ema", kind="ema_voltage", estimators=fakf)
+    _open(page, server, read_key, "#/a/LIVE-1/ema")
+    page.wait_for_selector("#live.on", timeout=WAIT_MS)
+    page.wait_for_selector('[data-chart="fakf-voltage"] .empty', timeout=WAIT_MS)
+    assert page.get_attribute("#facts", "data-applied-seq") == "0"
+    page.evaluate("window.__same_page = true")
+    series = make_series(2000, seed=31)
+
+    def post(batch_id: str, lo: int, hi: int) -> int:
+        with FleetHealthClient(server.url, server.api_key, timeout=60.0) as client:
+            ack = client.post_batch("LIVE-1", "ema", batch_id, {"current": series.current[lo:hi], "voltage": series.voltage[lo:hi]},
+                                    t_s=series.t_s[lo:hi], fmt="arrow")
+        return int(ack["seq"])
+
+    assert post("first", 0, 1000) == 1
+    page.wait_for_function(
+        "() => document.querySelector('#facts').dataset.appliedSeq === '1' && window.fleethealth.charts['fakf-voltage'].u"
+        " && window.fleethealth.charts['fakf-health'].u", timeout=WAIT_MS)
+    first = _chart_data(page, "fakf-voltage")
+    assert first["x"] >= 3 and max(first["finite"]) >= 3
+    assert first["x1"] == pytest.approx(series.t_s[999])
+    assert post("second", 1000, 2000) == 2
+    page.wait_for_function(
+        "(t) => document.querySelector('#facts').dataset.appliedSeq === '2'"
+        " && window.fleethealth.charts['fakf-voltage'].u.data[0].at(-1) > t", arg=first["x1"], timeout=WAIT_MS)
+    second = _chart_data(page, "fakf-voltage")
+    assert second["x0"] == pytest.approx(first["x0"]) and second["x1"] == pytest.approx(series.t_s[1999])
+    assert "2 / 2" in page.inner_text("#facts")  # applied / logged, read again after the event
+    assert page.get_attribute("#facts", "data-status") in {"learning", "ok", "watch", "alert", "unknown"}
+    assert page.evaluate("window.__same_page") is True

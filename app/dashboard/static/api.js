@@ -32,13 +32,14 @@ export async function get(path, params = {}, apiKey = key.get()) {
 export const enc = encodeURIComponent;
 export const actuatorPath = (tail, act) => `/v1/aircraft/${enc(tail)}/actuators/${enc(act)}`;
 
-// The fleet event stream: authenticates with its first message (browsers cannot set headers on
-// a WebSocket), reconnects with back-off, and hands every event to onEvent.
-export function fleetEvents(onEvent, onState) {
+// The fleet event stream (`query`: its tail and types): authenticates with its first message
+// (browsers cannot set headers on a WebSocket), reconnects with back-off, and hands every event
+// to onEvent.
+export function fleetEvents(query, onEvent, onState) {
   let ws = null, closed = false, delay = 1000;
   const open = () => {
     const proto = location.protocol === "https:" ? "wss:" : "ws:";
-    ws = new WebSocket(`${proto}//${location.host}/v1/fleet/events`);
+    ws = new WebSocket(`${proto}//${location.host}/v1/fleet/events${query ? `?${query}` : ""}`);
     ws.onopen = () => { ws.send(JSON.stringify({ type: "auth", key: key.get() })); onState(true); delay = 1000; };
     ws.onmessage = (m) => {
       let ev;
@@ -47,8 +48,9 @@ export function fleetEvents(onEvent, onState) {
       onEvent(ev);
     };
     ws.onclose = () => {
+      if (closed) return; // replaced by another subscription
       onState(false);
-      if (!closed) setTimeout(open, delay);
+      setTimeout(open, delay);
       delay = Math.min(delay * 2, 15000);
     };
   };

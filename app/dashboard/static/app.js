@@ -1,7 +1,7 @@
 // The dashboard: a key for this browser session, then the fleet board or an actuator page.
 import { ApiError, fleetEvents, get, key } from "/dashboard/api.js";
-import { Board } from "/dashboard/board.js";
-import { showActuator } from "/dashboard/actuator.js";
+import { Board, BOARD_EVENT_TYPES } from "/dashboard/board.js";
+import { ActuatorPage, PAGE_EVENT_TYPES } from "/dashboard/actuator.js";
 
 const main = document.getElementById("main");
 const login = document.getElementById("login");
@@ -10,11 +10,26 @@ const live = document.getElementById("live");
 const forget = document.getElementById("forget");
 const crumbs = document.getElementById("crumbs");
 const boardState = { sort: "status", tail: "", kind: "" };
-let board = null;
+let view = null; // the board or an actuator page: what the fleet events go to
 let stopEvents = null;
+let subscribed = null; // the subscription's query, one per kind of view
+
+// The fleet event stream of the view: the board hears the whole fleet's events, an actuator
+// page those of its tail, every applied batch included (it filters its own actuator's).
+function subscribe(query) {
+  if (stopEvents && subscribed === query) return;
+  if (stopEvents) stopEvents();
+  subscribed = query;
+  stopEvents = fleetEvents(query, (ev) => { if (view) view.onEvent(ev); }, (on) => {
+    live.textContent = on ? "live" : "offline";
+    live.classList.toggle("on", on);
+  });
+}
 
 function askForKey(message) {
   if (stopEvents) { stopEvents(); stopEvents = null; }
+  if (view && view.stop) view.stop();
+  view = null;
   key.clear();
   main.replaceChildren();
   crumbs.replaceChildren();
@@ -35,17 +50,24 @@ async function route() {
   login.hidden = true;
   forget.hidden = false;
   const m = location.hash.match(/^#\/a\/([^/]+)\/([^/]+)$/);
+  if (view && view.stop) view.stop();
+  view = null;
   try {
     if (m) {
-      board = null;
       const tail = decodeURIComponent(m[1]), act = decodeURIComponent(m[2]);
       const a = document.createElement("a");
       a.href = "#/"; a.textContent = "fleet";
       crumbs.replaceChildren(a, document.createTextNode(` / ${tail} / ${act}`));
-      await showActuator(main, tail, act);
+      // Subscribed before the first read, so that no batch applied meanwhile goes unseen.
+      subscribe(new URLSearchParams({ tail, types: PAGE_EVENT_TYPES.join(",") }).toString());
+      const page = new ActuatorPage(main, tail, act);
+      view = page;
+      await page.show();
     } else {
       crumbs.replaceChildren();
-      board = new Board(main, boardState);
+      subscribe(new URLSearchParams({ types: BOARD_EVENT_TYPES.join(",") }).toString());
+      const board = new Board(main, boardState);
+      view = board;
       await board.show();
     }
     document.body.dataset.ready = "true";
@@ -56,12 +78,6 @@ async function route() {
     p.className = "error";
     p.textContent = `Could not load: ${err.message}`;
     main.replaceChildren(p);
-  }
-  if (!stopEvents) {
-    stopEvents = fleetEvents((ev) => { if (board) board.onEvent(ev); }, (on) => {
-      live.textContent = on ? "live" : "offline";
-      live.classList.toggle("on", on);
-    });
   }
 }
 

@@ -2,6 +2,9 @@
 import { get } from "/dashboard/api.js";
 
 const STATUSES = ["ok", "learning", "watch", "unknown", "alert", "failed"]; // by severity
+// The board's fleet events: the default ones, and people's changes (maintenance, config).
+export const BOARD_EVENT_TYPES = ["status_changed", "fault_detected", "fault_cleared", "rul_threshold_crossed",
+  "dn_threshold_crossed", "maintenance_recorded", "config_changed"];
 
 function el(tag, cls, text) {
   const e = document.createElement(tag);
@@ -154,10 +157,12 @@ export class Board {
 
   renderEvents() {
     if (!this.evList) return;
-    if (!this.events.length) { this.evList.replaceChildren(el("li", "", "waiting for events (status changes, faults, RUL and Dn thresholds)")); return; }
+    if (!this.events.length) { this.evList.replaceChildren(el("li", "", "waiting for events (status changes, faults, RUL and Dn thresholds, maintenance, config changes)")); return; }
     this.evList.replaceChildren(...this.events.map((ev) => {
       let what = ev.type;
       if (ev.type === "status_changed") what = `status ${ev.from} -> ${ev.to}`;
+      else if (ev.type === "maintenance_recorded") what = `${ev.action} by ${ev.performed_by} (baseline ${ev.baseline})`;
+      else if (ev.type === "config_changed") what = `${ev.estimator} config version ${ev.version} (state ${ev.state})`;
       else if (ev.detail && ev.detail.component) what = `${ev.type} ${ev.detail.component}`;
       return el("li", "", `${ev.tail} / ${ev.actuator_id}: ${what}`);
     }));

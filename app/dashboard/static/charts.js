@@ -75,8 +75,25 @@ export class SeriesChart {
     this.specs = sources.map((s) => s.series);
     this.u = null;
     this.full = null;
+    this.zoomed = false;
     this.pending = 0;
     registry[id] = this;
+    this.body.addEventListener("dblclick", () => this.load());
+  }
+
+  // New data arrived: read the whole history again, unless the user has zoomed in (the zoomed
+  // view is kept until a double-click goes back to the whole history).
+  refresh() {
+    return this.zoomed ? Promise.resolve() : this.load();
+  }
+
+  // Other series to draw (their names come from a diagnosis that a new batch may change).
+  setSources(sources) {
+    const names = (xs) => JSON.stringify(xs.map((s) => s.series.map((x) => [x.name, x.scale])));
+    if (names(sources) === names(this.sources)) return;
+    this.sources = sources;
+    this.specs = sources.map((s) => s.series);
+    if (this.u) { this.u.destroy(); this.u = null; }
   }
 
   async load(from_s, to_s) {
@@ -86,6 +103,7 @@ export class SeriesChart {
       return;
     }
     const points = width(this.body);
+    this.zoomed = from_s !== undefined;
     const ticket = ++this.pending;
     const parts = await Promise.all(this.sources.map((s) => this.fetchSeries({ ...s.params, names: s.series.map((x) => x.name).join(","), from_s, to_s, points })));
     if (ticket !== this.pending) return; // a newer zoom has been asked for
@@ -94,7 +112,7 @@ export class SeriesChart {
     this.card.dataset.samples = String(parts.reduce((n, p) => n + p.n_samples, 0));
     if (!data[0].length) {
       this.body.replaceChildren(el("div", "empty", "no data yet"));
-      this.u = null;
+      if (this.u) { this.u.destroy(); this.u = null; }
       return;
     }
     if (!this.u) this.create(data);
@@ -142,8 +160,8 @@ export class SeriesChart {
         }],
       },
     };
+    this.body.replaceChildren(); // the "no data yet" of an earlier load
     this.u = new uPlot(opts, data, this.body);
-    this.body.addEventListener("dblclick", () => self.load());
   }
 
   drawOverlays(u) {
