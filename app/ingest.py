@@ -314,7 +314,8 @@ def _arrow_to_float(arr: pa.Array | pa.ChunkedArray, name: str) -> np.ndarray:
         raise InvalidBatch(f"column {name!r} has type {arr.type}; numbers are needed")
     arr = arr.cast(pa.float64())
     if isinstance(arr, pa.ChunkedArray):
-        arr = arr.combine_chunks()
+        # One chunk is used as it is (combine_chunks would copy it); several are joined.
+        arr = arr.chunk(0) if arr.num_chunks == 1 else arr.combine_chunks()
     # Read-only views are fine: nothing downstream writes into the samples.
     return np.asarray(arr.to_numpy(zero_copy_only=False))
 
