@@ -26,7 +26,7 @@ class Settings(BaseSettings):
     max_batch_decoded_bytes: int = Field(default=1024 * 1024 * 1024, gt=0)
     # Memory all batch requests of the process may hold at once (bodies in memory, decoding, log
     # encoding); a request that cannot have its share within ingest_memory_wait_s gets 503.
-    ingest_memory_bytes: int = Field(default=1024 * 1024 * 1024, gt=0)
+    ingest_memory_bytes: int = Field(default=2 * 1024 * 1024 * 1024, gt=0)
     ingest_memory_wait_s: float = Field(default=30.0, ge=0)
     # Bodies above this are spooled to a temporary file as they arrive (TMPDIR), not held in memory.
     body_spool_bytes: int = Field(default=8 * 1024 * 1024, ge=0)

@@ -13,8 +13,9 @@ is parsed. The limits are the batch's sample limit and a decoded-bytes limit,
 
 Each decoder also reserves, before it allocates, the memory it is about to use
 (``DecodeLimits.reserve``: the service's share of the process-wide budget,
-:class:`app.telemetry.body.IngestMemory`), from the same counts: ``JSON_BYTES_PER_VALUE`` per
-JSON value, ``CSV_BYTES_PER_VALUE`` per CSV cell, an Arrow record batch's decoded size. The body
+:class:`app.telemetry.body.IngestMemory`), from the same counts: the body's length (orjson parses
+a copy) and ``JSON_BYTES_PER_VALUE`` per JSON value, ``CSV_BYTES_PER_VALUE`` per CSV cell, twice
+an Arrow record batch's decoded size. The body
 is let go as soon as it is decoded (``release_body``), and JSON lists are turned into arrays one
 channel at a time, each list freed once converted.
 """
@@ -48,12 +49,12 @@ DECODED_BYTES_PER_VALUE = 9
 # Allowance of JSON values that are not samples: batch_id (at most MAX_BATCH_ID_LEN characters,
 # each possibly a comma), t0, sample_rate_hz, end_of_run.
 JSON_VALUE_SLACK = MAX_BATCH_ID_LEN + 16
-# Memory one parsed JSON value takes until it is a float64 array: a Python float (24 bytes), its
-# list slot (8, lists over-allocate by up to 1/8) and the float64 it becomes (8 + 8 while the
-# Arrow array it passes through exists); measured by bench/bench_batch_memory.py.
+# Memory one parsed JSON value takes until it is a float64 array: the parser's document node (16
+# bytes), a Python float (24), its list slot (8) and the float64 it becomes (8); a 73 MB body of
+# 4.05 million values peaked at 285 MB of anonymous memory (bench/bench_batch_memory.py --server).
 JSON_BYTES_PER_VALUE = 56
 # Memory one CSV cell takes while the CSV reader converts it (the parsed text block and the
-# column it becomes), measured by bench/bench_batch_memory.py.
+# column it becomes): 4.05 million cells took 153 MB (bench/bench_batch_memory.py).
 CSV_BYTES_PER_VALUE = 40
 
 #: A request body as the decoders take it: bytes, a bytearray or a read-only map of a spool file.
@@ -335,7 +336,8 @@ def _check_json_values(body: BodyBytes, limits: DecodeLimits) -> None:
         raise InvalidBatch(f"batch holds more values than {limits.max_samples} samples of "
                            f"{len(limits.expected_channels)} channels and t; the limit is "
                            f"{limits.max_samples} samples: split it")
-    limits.reserve((commas + 1) * JSON_BYTES_PER_VALUE)
+    # The parser's own copy of the text, then every value.
+    limits.reserve(len(body) + (commas + 1) * JSON_BYTES_PER_VALUE)
 
 
 def _json_object(body: BodyBytes, limits: DecodeLimits) -> dict[str, Any]:
