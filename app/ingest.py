@@ -13,9 +13,10 @@ is parsed. The limits are the batch's sample limit and a decoded-bytes limit,
 
 Each decoder also reserves, before it allocates, the memory it is about to use
 (``DecodeLimits.reserve``: the service's share of the process-wide budget,
-:class:`app.telemetry.body.IngestMemory`), from the same counts: the body's length (orjson parses
-a copy) and ``JSON_BYTES_PER_VALUE`` per JSON value, ``CSV_BYTES_PER_VALUE`` per CSV cell, twice
-an Arrow record batch's decoded size. The body
+:class:`app.telemetry.body.IngestMemory`), from the same counts, once for the whole request (its
+encoding for the log included, ``LOG_BYTES_PER_VALUE`` per value): the body's length (orjson
+parses a copy) and ``JSON_BYTES_PER_VALUE`` per JSON value, ``CSV_BYTES_PER_VALUE`` per CSV cell,
+twice an Arrow stream's decoded size. The body
 is let go as soon as it is decoded (``release_body``), and JSON lists are turned into arrays one
 channel at a time, each list freed once converted.
 """
@@ -56,6 +57,9 @@ JSON_BYTES_PER_VALUE = 56
 # Memory one CSV cell takes while the CSV reader converts it (the parsed text block and the
 # column it becomes): 4.05 million cells took 153 MB (bench/bench_batch_memory.py).
 CSV_BYTES_PER_VALUE = 40
+# Memory encoding a value for the telemetry log takes: the zstd output (about the float64 size
+# for sensor noise) and the float64 it is made from, while the batch waits for its commit.
+LOG_BYTES_PER_VALUE = 16
 
 #: A request body as the decoders take it: bytes, a bytearray or a read-only map of a spool file.
 BodyBytes = bytes | bytearray | mmap.mmap
@@ -336,8 +340,9 @@ def _check_json_values(body: BodyBytes, limits: DecodeLimits) -> None:
         raise InvalidBatch(f"batch holds more values than {limits.max_samples} samples of "
                            f"{len(limits.expected_channels)} channels and t; the limit is "
                            f"{limits.max_samples} samples: split it")
-    # The parser's own copy of the text, then every value.
-    limits.reserve(len(body) + (commas + 1) * JSON_BYTES_PER_VALUE)
+    # The parser's own copy of the text, then every value, parsed and encoded for the log: one
+    # reservation for the whole request (one that waited holding a part could wait on another).
+    limits.reserve(len(body) + (commas + 1) * (JSON_BYTES_PER_VALUE + LOG_BYTES_PER_VALUE))
 
 
 def _json_object(body: BodyBytes, limits: DecodeLimits) -> dict[str, Any]:
@@ -433,7 +438,7 @@ def _read_csv(body: BodyBytes, limits: DecodeLimits) -> pa.Table:
                 if rows > limits.max_samples:
                     raise _too_many_samples(rows, limits.max_samples, at_least=True)
             lines = rows
-        limits.reserve((lines + 1) * len(names) * CSV_BYTES_PER_VALUE)
+        limits.reserve((lines + 1) * len(names) * (CSV_BYTES_PER_VALUE + LOG_BYTES_PER_VALUE))
         return pacsv.read_csv(
             pa.BufferReader(buf),
             convert_options=pacsv.ConvertOptions(null_values=_CSV_NULLS, strings_can_be_null=True),
@@ -543,7 +548,7 @@ def _read_arrow(body: BodyBytes, limits: DecodeLimits) -> pa.Table:
     schema with more columns than the channels and ``t`` (each is cast to float64). Dictionary
     batches are refused (the columns must be numbers).
     """
-    batches: list[pa.RecordBatch] = []
+    messages: list[pa.ipc.Message] = []
     rows = 0
     decoded = 0
     try:
@@ -551,6 +556,8 @@ def _read_arrow(body: BodyBytes, limits: DecodeLimits) -> pa.Table:
         schema = pa.ipc.read_schema(reader.read_next_message())
         if len(schema) > len(limits.expected_channels) + 1:
             raise _too_many_columns(len(schema), limits)
+        # First every message's header (the bodies are slices of the request body, nothing is
+        # decompressed), then one reservation for the whole batch, then the decoding.
         while True:
             try:
                 message = reader.read_next_message()
@@ -566,14 +573,16 @@ def _read_arrow(body: BodyBytes, limits: DecodeLimits) -> pa.Table:
             rows += n
             if rows > limits.max_samples:
                 raise _too_many_samples(rows, limits.max_samples, at_least=True)
-            size = _decoded_bytes(message.body, buffers, compressed)
-            decoded += size
+            decoded += _decoded_bytes(message.body, buffers, compressed)
             if decoded > limits.max_bytes:
                 raise InvalidBatch(f"batch decodes to more than {limits.max_bytes} bytes, the limit "
                                    f"for {limits.max_samples} samples of "
                                    f"{len(limits.expected_channels)} channels and t: split it")
-            # Decoded size, and once more for the float64 cast / chunk concatenation after it.
-            limits.reserve(2 * size)
+            messages.append(message)
+        # The decoded size, once more for a float64 cast or chunks joined, and the log encoding.
+        limits.reserve(2 * decoded + rows * len(schema) * LOG_BYTES_PER_VALUE)
+        batches = []
+        for message in messages:
             batch = pa.ipc.read_record_batch(message, schema)
             batch.validate()  # buffer sizes consistent with the declared length (cheap, no scan)
             batches.append(batch)

@@ -118,11 +118,6 @@ def log_batch(session: Session, actuator: Actuator, batch: ParsedBatch) -> Ack:
     return _ack(row, replayed=False)
 
 
-#: Memory encoding a batch for the log takes, per decoded byte: the zstd output (at most about
-#: the input for float noise) and its copy out of Arrow's output stream.
-LOG_ENCODE_BYTES_PER_BYTE = 2
-
-
 def _prepare_body(
     db: Database,
     operator_id: int,
@@ -143,8 +138,6 @@ def _prepare_body(
         parsed = parse_body(body.data, media_type, params, channels, max_samples, limits.max_decoded_bytes,
                             reserve=reserve, release_body=body.close)
     check_batch(parsed, limits)
-    if reserve is not None:
-        reserve(LOG_ENCODE_BYTES_PER_BYTE * parsed.nbytes)
     return pk, parsed
 
 
@@ -167,8 +160,8 @@ async def ingest_body(
     while it is decoded), in a worker thread, and let go as soon as it is decoded; the append
     joins the log writer's next group commit (:mod:`app.telemetry.writer`), which locks the
     actuator row again. ``reservation`` (the request's share of the process's ingest memory)
-    is taken by the decoders before they allocate and by the log encoding; the caller gives it
-    back once the answer is known. A request that held much hands its freed memory back to the
+    is taken by the decoder before it allocates, for the decoding and the log encoding at once;
+    the caller gives it back once the answer is known. A request that held much hands its freed memory back to the
     OS before it answers.
     """
     try:
