@@ -24,6 +24,12 @@ class Settings(BaseSettings):
     # Upper bound of the bytes one batch may decode to (an Arrow body's decompressed buffers);
     # the bound applied is the smaller of this and max_batch_samples x (channels + 1) x 9 bytes.
     max_batch_decoded_bytes: int = Field(default=1024 * 1024 * 1024, gt=0)
+    # Memory all batch requests of the process may hold at once (bodies in memory, decoding, log
+    # encoding); a request that cannot have its share within ingest_memory_wait_s gets 503.
+    ingest_memory_bytes: int = Field(default=2 * 1024 * 1024 * 1024, gt=0)
+    ingest_memory_wait_s: float = Field(default=30.0, ge=0)
+    # Bodies above this are spooled to a temporary file as they arrive (TMPDIR), not held in memory.
+    body_spool_bytes: int = Field(default=8 * 1024 * 1024, ge=0)
     max_wait_s: float = Field(default=60.0, ge=0)
     # Input bounds on every batch and frame (app/telemetry/validation.py, docs/operations.md).
     max_abs_value: float = Field(default=1e12, gt=0, le=2**53)

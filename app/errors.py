@@ -110,6 +110,13 @@ class RewindRefused(DomainError):
     status_code = 409
 
 
+class IngestBusy(DomainError):
+    """Batch requests being taken in hold the process's whole memory budget for them
+    (``FLEETHEALTH_INGEST_MEMORY_BYTES``): nothing was stored; retry after ``Retry-After`` seconds."""
+
+    status_code = 503
+
+
 class StorageUnavailable(DomainError):
     """The database cannot be reached or cannot write (out of space, connection lost): nothing
     was stored; retry after ``Retry-After`` seconds."""

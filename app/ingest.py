@@ -10,16 +10,25 @@ batch's declared row count and decompressed buffer sizes are checked against the
 the batch is decoded; a CSV or JSON body's rows / values are counted on the raw bytes before it
 is parsed. The limits are the batch's sample limit and a decoded-bytes limit,
 :func:`decoded_bytes_limit`.
+
+Each decoder also reserves, before it allocates, the memory it is about to use
+(``DecodeLimits.reserve``: the service's share of the process-wide budget,
+:class:`app.telemetry.body.IngestMemory`), from the same counts, once for the whole request (its
+encoding for the log included, ``LOG_BYTES_PER_VALUE`` per value): the body's length (orjson
+parses a copy) and ``JSON_BYTES_PER_VALUE`` per JSON value, ``CSV_BYTES_PER_VALUE`` per CSV cell,
+twice an Arrow stream's decoded size. The body
+is let go as soon as it is decoded (``release_body``), and JSON lists are turned into arrays one
+channel at a time, each list freed once converted.
 """
 
 from __future__ import annotations
 
 import hashlib
-import io
 import math
+import mmap
 import struct
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -41,6 +50,23 @@ DECODED_BYTES_PER_VALUE = 9
 # Allowance of JSON values that are not samples: batch_id (at most MAX_BATCH_ID_LEN characters,
 # each possibly a comma), t0, sample_rate_hz, end_of_run.
 JSON_VALUE_SLACK = MAX_BATCH_ID_LEN + 16
+# Memory one parsed JSON value takes until it is a float64 array: the parser's document node (16
+# bytes), a Python float (24), its list slot (8) and the float64 it becomes (8); a 73 MB body of
+# 4.05 million values peaked at 285 MB of anonymous memory (bench/bench_batch_memory.py --server).
+JSON_BYTES_PER_VALUE = 56
+# Memory one CSV cell takes while the CSV reader converts it (the parsed text block and the
+# column it becomes): 4.05 million cells took 153 MB (bench/bench_batch_memory.py).
+CSV_BYTES_PER_VALUE = 40
+# Memory encoding a value for the telemetry log takes: the zstd output (about the float64 size
+# for sensor noise) and the float64 it is made from, while the batch waits for its commit.
+LOG_BYTES_PER_VALUE = 16
+
+#: A request body as the decoders take it: bytes, a bytearray or a read-only map of a spool file.
+BodyBytes = bytes | bytearray | mmap.mmap
+
+
+def _no_reservation(n: int) -> None:
+    """The default of :attr:`DecodeLimits.reserve`: nothing is accounted."""
 
 
 @dataclass(frozen=True)
@@ -56,13 +82,19 @@ class ParsedBatch:
     def n_samples(self) -> int:
         return int(self.t_s.shape[0])
 
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the decoded samples (t and every channel)."""
+        return int(self.t_s.nbytes) + sum(int(c.nbytes) for c in self.channels.values())
+
     def content_hash(self) -> str:
         """Digest of the decoded samples, so a retry in another format or spacing still matches."""
         h = hashlib.blake2b(digest_size=16)
-        h.update(np.ascontiguousarray(self.t_s).tobytes())
+        # The arrays' own buffers (no copy): the same bytes tobytes() would give.
+        h.update(np.ascontiguousarray(self.t_s).data)
         for name in sorted(self.channels):
             h.update(name.encode())
-            h.update(np.ascontiguousarray(self.channels[name]).tobytes())
+            h.update(np.ascontiguousarray(self.channels[name]).data)
         if self.end_of_run:
             # Part of the batch's identity; only when set, so digests of batches logged before
             # the marker existed stay the same.
@@ -90,11 +122,13 @@ def media_type(content_type: str | None) -> str:
 
 @dataclass(frozen=True)
 class DecodeLimits:
-    """What one batch may decode to: ``max_samples`` rows, ``max_bytes`` decoded bytes."""
+    """What one batch may decode to: ``max_samples`` rows, ``max_bytes`` decoded bytes; each
+    decoder calls ``reserve(n)`` with the bytes it is about to allocate before it allocates."""
 
     expected_channels: tuple[str, ...]
     max_samples: int
     max_bytes: int
+    reserve: Callable[[int], None] = field(default=_no_reservation, compare=False)
 
 
 def decoded_bytes_limit(n_channels: int, max_samples: int, cap_bytes: int | None = None) -> int:
@@ -109,12 +143,29 @@ def decoded_bytes_limit(n_channels: int, max_samples: int, cap_bytes: int | None
     return bound if cap_bytes is None else min(bound, cap_bytes)
 
 
-def _limits(expected_channels: Sequence[str], max_samples: int, max_decoded_bytes: int | None) -> DecodeLimits:
+def _limits(
+    expected_channels: Sequence[str],
+    max_samples: int,
+    max_decoded_bytes: int | None,
+    reserve: Callable[[int], None] | None = None,
+) -> DecodeLimits:
     return DecodeLimits(
         tuple(expected_channels),
         max_samples,
         decoded_bytes_limit(len(expected_channels), max_samples, max_decoded_bytes),
+        reserve or _no_reservation,
     )
+
+
+_COUNT_STEP = 4 * 1024 * 1024
+
+
+def _count(body: BodyBytes, byte: bytes) -> int:
+    """Occurrences of ``byte`` in ``body`` (a map has no ``count``: read in slices)."""
+    if not isinstance(body, mmap.mmap):
+        return body.count(byte)
+    view = memoryview(body)
+    return sum(view[i:i + _COUNT_STEP].tobytes().count(byte) for i in range(0, len(view), _COUNT_STEP))
 
 
 def _too_many_samples(n: int, max_samples: int, *, at_least: bool = False) -> InvalidBatch:
@@ -124,26 +175,38 @@ def _too_many_samples(n: int, max_samples: int, *, at_least: bool = False) -> In
 
 
 def parse_body(
-    body: bytes,
+    body: BodyBytes,
     mt: str,
     params: TimeParams,
     expected_channels: Sequence[str],
     max_samples: int,
     max_decoded_bytes: int | None = None,
+    *,
+    reserve: Callable[[int], None] | None = None,
+    release_body: Callable[[], None] | None = None,
 ) -> ParsedBatch:
-    """Decode and validate a REST body; ``max_decoded_bytes`` caps :func:`decoded_bytes_limit`."""
-    if not body:
+    """Decode and validate a REST body; ``max_decoded_bytes`` caps :func:`decoded_bytes_limit`.
+
+    ``reserve(n)`` is called with the bytes each decoder is about to allocate, before it does;
+    ``release_body()`` once the body is decoded (the caller drops its last reference there).
+    """
+    if not len(body):
         raise InvalidBatch("empty body")
-    limits = _limits(expected_channels, max_samples, max_decoded_bytes)
+    limits = _limits(expected_channels, max_samples, max_decoded_bytes, reserve)
     end_of_run = params.end_of_run
     if mt in JSON_TYPES:
         doc = _json_object(body, limits)
-        batch_id, t_s, columns = _parse_json_doc(doc, params)
+        del body
+        if release_body is not None:
+            release_body()
         end_of_run = _end_of_run(doc.get("end_of_run", end_of_run))
-    elif mt in CSV_TYPES:
-        batch_id, t_s, columns = _parse_table(_read_csv(body, limits), params)
+        batch_id, t_s, columns = _parse_json_doc(doc, params)
     else:
-        batch_id, t_s, columns = _parse_table(_read_arrow(body, limits), params)
+        table = _read_csv(body, limits) if mt in CSV_TYPES else _read_arrow(body, limits)
+        del body
+        if release_body is not None:
+            release_body()
+        batch_id, t_s, columns = _parse_table(table, params)
     return _validate(batch_id, t_s, columns, expected_channels, max_samples, end_of_run)
 
 
@@ -256,12 +319,13 @@ def _arrow_to_float(arr: pa.Array | pa.ChunkedArray, name: str) -> np.ndarray:
         raise InvalidBatch(f"column {name!r} has type {arr.type}; numbers are needed")
     arr = arr.cast(pa.float64())
     if isinstance(arr, pa.ChunkedArray):
-        arr = arr.combine_chunks()
+        # One chunk is used as it is (combine_chunks would copy it); several are joined.
+        arr = arr.chunk(0) if arr.num_chunks == 1 else arr.combine_chunks()
     # Read-only views are fine: nothing downstream writes into the samples.
     return np.asarray(arr.to_numpy(zero_copy_only=False))
 
 
-def _check_json_values(body: bytes, limits: DecodeLimits) -> None:
+def _check_json_values(body: BodyBytes, limits: DecodeLimits) -> None:
     """Refuse, before parsing, a JSON document with more values than the limits allow.
 
     Parsed, each JSON number costs a Python float and a list slot (about 32 bytes) for as little
@@ -271,16 +335,20 @@ def _check_json_values(body: bytes, limits: DecodeLimits) -> None:
     the other fields), the batch cannot be valid.
     """
     allowed = limits.max_samples * (len(limits.expected_channels) + 1) + JSON_VALUE_SLACK
-    if body.count(b",") > allowed:
+    commas = _count(body, b",")
+    if commas > allowed:
         raise InvalidBatch(f"batch holds more values than {limits.max_samples} samples of "
                            f"{len(limits.expected_channels)} channels and t; the limit is "
                            f"{limits.max_samples} samples: split it")
+    # The parser's own copy of the text, then every value, parsed and encoded for the log: one
+    # reservation for the whole request (one that waited holding a part could wait on another).
+    limits.reserve(len(body) + (commas + 1) * (JSON_BYTES_PER_VALUE + LOG_BYTES_PER_VALUE))
 
 
-def _json_object(body: bytes, limits: DecodeLimits) -> dict[str, Any]:
+def _json_object(body: BodyBytes, limits: DecodeLimits) -> dict[str, Any]:
     _check_json_values(body, limits)
     try:
-        doc = orjson.loads(body)
+        doc = orjson.loads(memoryview(body) if isinstance(body, mmap.mmap) else body)
     except orjson.JSONDecodeError as exc:
         raise InvalidBatch(f"body is not valid JSON (NaN and Infinity are not JSON; send null "
                            f"for a missing sample): {exc}") from None
@@ -299,12 +367,16 @@ def _parse_json_doc(
     chans = doc.get("channels")
     if not isinstance(chans, dict) or not chans:
         raise InvalidBatch("channels must be a non-empty object {name: [values]}")
-    columns = {str(k): _to_float_array(v, str(k)) for k, v in chans.items()}
+    if doc.get("t") is not None and ("t0" in doc or "sample_rate_hz" in doc):
+        raise InvalidBatch("give either t or t0 with sample_rate_hz, not both")
+    # One list at a time, each dropped from the document once converted: the Python floats of
+    # a large batch are never all held next to their arrays.
+    columns: dict[str, np.ndarray] = {}
+    for name in list(chans):
+        columns[str(name)] = _to_float_array(chans.pop(name), str(name))
     t_s = None
     if doc.get("t") is not None:
-        if "t0" in doc or "sample_rate_hz" in doc:
-            raise InvalidBatch("give either t or t0 with sample_rate_hz, not both")
-        t_s = _to_float_array(doc["t"], "t")
+        t_s = _to_float_array(doc.pop("t"), "t")
     else:
         t0 = doc.get("t0", params.t0)
         rate = doc.get("sample_rate_hz", params.sample_rate_hz)
@@ -333,7 +405,7 @@ def _too_many_columns(n: int, limits: DecodeLimits) -> InvalidBatch:
                         f"channels ({', '.join(limits.expected_channels)}) and {TIME_COLUMN!r}")
 
 
-def _read_csv(body: bytes, limits: DecodeLimits) -> pa.Table:
+def _read_csv(body: BodyBytes, limits: DecodeLimits) -> pa.Table:
     """Read a CSV body, its size checked against ``limits`` before it is decoded whole.
 
     The header is read from the first block (``_CSV_BLOCK_BYTES``) only: more columns than the
@@ -342,18 +414,20 @@ def _read_csv(body: bytes, limits: DecodeLimits) -> pa.Table:
     loose) are the rows counted exactly, block by block with every column read as text, stopping
     as soon as the limit is passed. The full read then infers each column's type over all rows.
     """
+    buf = pa.py_buffer(body)  # the body itself, not a copy (io.BytesIO copies a bytearray)
     try:
         head = pacsv.open_csv(
-            io.BytesIO(body), read_options=pacsv.ReadOptions(block_size=_CSV_BLOCK_BYTES)
+            pa.BufferReader(buf), read_options=pacsv.ReadOptions(block_size=_CSV_BLOCK_BYTES)
         )
         names = head.schema.names
         head.close()
         if len(names) > len(limits.expected_channels) + 1:
             raise _too_many_columns(len(names), limits)
-        if body.count(b"\n") > limits.max_samples + 1:
+        lines = _count(body, b"\n")
+        if lines > limits.max_samples + 1:
             rows = 0
             reader = pacsv.open_csv(
-                io.BytesIO(body),
+                pa.BufferReader(buf),
                 read_options=pacsv.ReadOptions(block_size=_CSV_BLOCK_BYTES),
                 convert_options=pacsv.ConvertOptions(
                     column_types={name: pa.string() for name in names}
@@ -363,8 +437,10 @@ def _read_csv(body: bytes, limits: DecodeLimits) -> pa.Table:
                 rows += block.num_rows
                 if rows > limits.max_samples:
                     raise _too_many_samples(rows, limits.max_samples, at_least=True)
+            lines = rows
+        limits.reserve((lines + 1) * len(names) * (CSV_BYTES_PER_VALUE + LOG_BYTES_PER_VALUE))
         return pacsv.read_csv(
-            io.BytesIO(body),
+            pa.BufferReader(buf),
             convert_options=pacsv.ConvertOptions(null_values=_CSV_NULLS, strings_can_be_null=True),
         )
     except (pa.ArrowInvalid, pa.ArrowTypeError) as exc:
@@ -463,7 +539,7 @@ def _decoded_bytes(body: pa.Buffer | None, buffers: list[tuple[int, int]], compr
     return total
 
 
-def _read_arrow(body: bytes, limits: DecodeLimits) -> pa.Table:
+def _read_arrow(body: BodyBytes, limits: DecodeLimits) -> pa.Table:
     """Read an Arrow IPC stream record batch by record batch, bounded before each is decoded.
 
     Each message's metadata is read first: a record batch whose declared rows take the total
@@ -472,7 +548,7 @@ def _read_arrow(body: bytes, limits: DecodeLimits) -> pa.Table:
     schema with more columns than the channels and ``t`` (each is cast to float64). Dictionary
     batches are refused (the columns must be numbers).
     """
-    batches: list[pa.RecordBatch] = []
+    messages: list[pa.ipc.Message] = []
     rows = 0
     decoded = 0
     try:
@@ -480,6 +556,8 @@ def _read_arrow(body: bytes, limits: DecodeLimits) -> pa.Table:
         schema = pa.ipc.read_schema(reader.read_next_message())
         if len(schema) > len(limits.expected_channels) + 1:
             raise _too_many_columns(len(schema), limits)
+        # First every message's header (the bodies are slices of the request body, nothing is
+        # decompressed), then one reservation for the whole batch, then the decoding.
         while True:
             try:
                 message = reader.read_next_message()
@@ -500,6 +578,11 @@ def _read_arrow(body: bytes, limits: DecodeLimits) -> pa.Table:
                 raise InvalidBatch(f"batch decodes to more than {limits.max_bytes} bytes, the limit "
                                    f"for {limits.max_samples} samples of "
                                    f"{len(limits.expected_channels)} channels and t: split it")
+            messages.append(message)
+        # The decoded size, once more for a float64 cast or chunks joined, and the log encoding.
+        limits.reserve(2 * decoded + rows * len(schema) * LOG_BYTES_PER_VALUE)
+        batches = []
+        for message in messages:
             batch = pa.ipc.read_record_batch(message, schema)
             batch.validate()  # buffer sizes consistent with the declared length (cheap, no scan)
             batches.append(batch)

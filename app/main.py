@@ -28,6 +28,7 @@ from app.processing.processor import Processor
 from app.streams import router as streams_router
 from app.system import router as system_router
 from app.telemetry import router as telemetry_router
+from app.telemetry.body import IngestMemory
 from app.telemetry.validation import ControlCharGuard
 from app.telemetry.writer import LogWriter
 from app.webhooks import router as webhooks_router
@@ -99,6 +100,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         deliverer = Deliverer(db, settings) if settings.webhooks_enabled else None
         app.state.deliverer = deliverer
         app.state.log_writer = writer
+        app.state.ingest_memory = IngestMemory(settings.ingest_memory_bytes, settings.ingest_memory_wait_s)
         app.state.kernels = kernels
         app.state.kernels_warm = kernels.done
         if settings.bootstrap_admin_key:

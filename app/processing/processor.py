@@ -53,11 +53,14 @@ from app.processing import repository, service
 from app.processing.orchestration import StateUnreadable
 from app.processing.recent import RecentBatches
 from app.processing.service import ApplyResult
+from app.telemetry.body import release_memory
 from app.websocket.hub import Hub, StreamMeta, fleet_events
 
 log = logging.getLogger("fleethealth.processor")
 
 BATCHES_APPLIED = Counter("fleethealth_batches_applied_total", "Batches applied to estimators")
+#: An apply of at least this many samples hands the memory it freed back to the OS afterwards.
+RELEASE_AFTER_SAMPLES = 250_000
 SAMPLES_APPLIED = Counter("fleethealth_samples_applied_total", "Samples applied to estimators")
 APPLY_ERRORS = Counter("fleethealth_apply_errors_total", "Failed apply transactions")
 STATE_REPLAYS = Counter(
@@ -285,6 +288,8 @@ class Processor:
             return [], 0
         if results:
             APPLY_SECONDS.observe(time.perf_counter() - t0)
+            if sum(r.samples for r in results) >= RELEASE_AFTER_SAMPLES:
+                release_memory()  # the freed batches' heap back to the OS (docs/operations.md)
         again = list(left)
         for res in results:
             self._attempts.pop(res.actuator_pk, None)

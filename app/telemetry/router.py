@@ -19,11 +19,12 @@ from app.deps import (
     ReadSessionDep,
     SettingsDep,
 )
-from app.errors import DomainError, PayloadTooLarge, StreamFailed, error_responses, json_response
+from app.errors import DomainError, StreamFailed, error_responses, json_response
 from app.fleet import service as fleet
 from app.ingest import TimeParams, media_type
 from app.pagination import CursorQuery, OrderQuery, decode_cursor, encode_cursor
 from app.telemetry import readback, schemas, service
+from app.telemetry.body import Reservation, read_body
 from app.telemetry.validation import BatchLimits
 
 router = APIRouter(prefix="/v1", tags=["telemetry"])
@@ -72,18 +73,6 @@ _BODY_DOC: dict[str, Any] = {
 }
 
 
-async def _read_body(request: Request, limit: int) -> bytes:
-    declared = request.headers.get("content-length")
-    if declared is not None and declared.isdigit() and int(declared) > limit:
-        raise PayloadTooLarge(f"body of {declared} bytes exceeds the limit of {limit} bytes")
-    buf = bytearray()
-    async for chunk in request.stream():
-        buf += chunk
-        if len(buf) > limit:
-            raise PayloadTooLarge(f"body exceeds the limit of {limit} bytes")
-    return bytes(buf)
-
-
 @router.post(
     "/aircraft/{tail}/actuators/{actuator_id}/telemetry",
     status_code=202,
@@ -120,19 +109,23 @@ async def post_telemetry(
     409 `StreamFailed` says at once that the stream is no longer applied, and why (the batch is
     logged all the same).
     """
+    # The request's share of the process's ingest memory, held until the batch is logged.
+    reservation = Reservation(request.app.state.ingest_memory)
     try:
         mt = media_type(request.headers.get("content-type"))
-        body = await _read_body(request, settings.max_body_bytes)
+        body = await read_body(request, settings.max_body_bytes, settings.body_spool_bytes, reservation)
         params = TimeParams(
             batch_id=batch_id or idempotency_key, t0=t0, sample_rate_hz=sample_rate_hz, end_of_run=end_of_run
         )
         ack = await service.ingest_body(
             request.app.state.log_writer, db, p.operator_id, tail, actuator_id, body, mt, params,
-            settings.max_batch_samples, BatchLimits.from_settings(settings),
+            settings.max_batch_samples, BatchLimits.from_settings(settings), reservation,
         )
     except DomainError as exc:
         BATCHES_REJECTED.labels(exc.name).inc()
         raise
+    finally:
+        reservation.close()
     if ack.replayed:
         BATCHES_REPLAYED.inc()
     else:

@@ -22,6 +22,7 @@ from app.fleet import service as fleet
 from app.ingest import TIME_COLUMN, ParsedBatch, TimeParams, client_seq_of, parse_body, parse_frame
 from app.models import Actuator, TelemetryBatch
 from app.telemetry import repository
+from app.telemetry.body import RELEASE_AFTER_BYTES, RequestBody, Reservation, release_memory
 from app.telemetry.validation import DEFAULT_LIMITS, BatchLimits, check_batch, decoding_guard
 from app.telemetry.writer import LogWriter
 
@@ -122,17 +123,20 @@ def _prepare_body(
     operator_id: int,
     tail: str,
     actuator_id: str,
-    body: bytes,
+    body: RequestBody,
     media_type: str,
     params: TimeParams,
     max_samples: int,
     limits: BatchLimits,
+    reservation: Reservation | None,
 ) -> tuple[int, ParsedBatch]:
     with db.read() as s:
         act = fleet.get_actuator(s, operator_id, tail, actuator_id)
         pk, channels = act.id, list(act.channels)
+    reserve = reservation.take if reservation is not None else None
     with decoding_guard():
-        parsed = parse_body(body, media_type, params, channels, max_samples, limits.max_decoded_bytes)
+        parsed = parse_body(body.data, media_type, params, channels, max_samples, limits.max_decoded_bytes,
+                            reserve=reserve, release_body=body.close)
     check_batch(parsed, limits)
     return pk, parsed
 
@@ -143,22 +147,36 @@ async def ingest_body(
     operator_id: int,
     tail: str,
     actuator_id: str,
-    body: bytes,
+    body: RequestBody,
     media_type: str,
     params: TimeParams,
     max_samples: int,
     limits: BatchLimits = DEFAULT_LIMITS,
+    reservation: Reservation | None = None,
 ) -> Ack:
     """Parse a REST body and log it; returns once the append is committed.
 
     The body is parsed outside the write transaction (a large batch never holds the log's lock
-    while it is decoded), in a worker thread; the append joins the log writer's next group commit
-    (:mod:`app.telemetry.writer`), which locks the actuator row again.
+    while it is decoded), in a worker thread, and let go as soon as it is decoded; the append
+    joins the log writer's next group commit (:mod:`app.telemetry.writer`), which locks the
+    actuator row again. ``reservation`` (the request's share of the process's ingest memory)
+    is taken by the decoder before it allocates, for the decoding and the log encoding at once;
+    the caller gives it back once the answer is known. A request that held much hands its freed memory back to the
+    OS before it answers.
     """
-    pk, parsed = await run_in_threadpool(
-        _prepare_body, db, operator_id, tail, actuator_id, body, media_type, params, max_samples, limits
-    )
-    return await asyncio.wrap_future(writer.submit(pk, parsed))
+    try:
+        pk, parsed = await run_in_threadpool(
+            _prepare_body, db, operator_id, tail, actuator_id, body, media_type, params, max_samples,
+            limits, reservation,
+        )
+        appended = writer.submit(pk, parsed)
+        del parsed  # the writer holds it until its commit, and no longer
+        return await asyncio.wrap_future(appended)
+    finally:
+        body.close()
+        held = reservation.total if reservation is not None else 0
+        if max(body.size, held) >= RELEASE_AFTER_BYTES:
+            await run_in_threadpool(release_memory)
 
 
 def _prepare_frame(

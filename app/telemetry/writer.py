@@ -125,6 +125,9 @@ class LogWriter:
                 log.exception("the log writer failed on a group of %d appends", len(group))
                 for item in group:
                     _settle(item.future, exc)
+            # Nothing of a committed group (its decoded batches) stays referenced until the next.
+            del first, group
+            nxt = None
 
     def _write(self, group: list[_Append]) -> None:
         GROUP_SIZE.observe(len(group))
