@@ -13,7 +13,7 @@ from fastapi.staticfiles import StaticFiles
 from app import __version__
 from app.alarms import router as alarms_router
 from app.auth import router as auth_router
-from app.auth.service import SCOPES, ensure_key
+from app.auth.service import SCOPES, KeyVerifier, ensure_key
 from app.config import Settings, get_settings
 from app.dashboard import router as dashboard_router
 from app.db import Database
@@ -28,6 +28,7 @@ from app.processing.processor import Processor
 from app.streams import router as streams_router
 from app.system import router as system_router
 from app.telemetry import router as telemetry_router
+from app.telemetry.service import ActuatorLookup
 from app.telemetry.validation import ControlCharGuard
 from app.telemetry.writer import LogWriter
 from app.webhooks import router as webhooks_router
@@ -95,6 +96,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             listener.start()
         app.state.db = db
         app.state.settings = settings
+        app.state.key_verifier = KeyVerifier(db, settings.auth_cache_ttl_s, settings.lookup_cache_entries)
+        app.state.actuator_lookup = ActuatorLookup(db, settings.actuator_cache_ttl_s, settings.lookup_cache_entries)
         app.state.processor = processor
         deliverer = Deliverer(db, settings) if settings.webhooks_enabled else None
         app.state.deliverer = deliverer

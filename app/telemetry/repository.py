@@ -2,38 +2,101 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from datetime import datetime
+from typing import cast
 
-from sqlalchemy import select, text
-from sqlalchemy.exc import IntegrityError
+from sqlalchemy import Table, bindparam, insert, select, text, update
 from sqlalchemy.orm import Session
 
 from app.models import Actuator, TelemetryBatch
 
+_BATCHES = cast(Table, TelemetryBatch.__table__)
+_ACTUATORS = cast(Table, Actuator.__table__)
 
-def batch_by_id(session: Session, actuator_pk: int, batch_id: str) -> TelemetryBatch | None:
-    return session.scalar(
-        select(TelemetryBatch).where(
-            TelemetryBatch.actuator_pk == actuator_pk, TelemetryBatch.batch_id == batch_id
-        )
+
+@dataclass
+class LogHead:
+    """Where an actuator's log stands: the columns of its row the log writer locks and advances."""
+
+    actuator_pk: int
+    last_logged_seq: int
+    last_logged_t_s: float | None
+    last_client_seq: int | None
+
+
+@dataclass(frozen=True)
+class LoggedBatch:
+    """What the log keeps of a batch to recognize and answer a retry of it."""
+
+    seq: int
+    batch_id: str
+    content_hash: str
+    n_samples: int
+    t_first_s: float
+    t_last_s: float
+    received_at: datetime
+    end_of_run: bool
+
+
+# The log writer's SQL is Core, on the session's connection: one statement per group for the
+# heads, the retries and the inserts, whatever the number of appends (no ORM unit of work).
+def lock_log_heads(session: Session, actuator_pks: Sequence[int]) -> dict[int, LogHead]:
+    """The log heads of the live (not deleted) actuators among ``actuator_pks``, their rows
+    locked for this transaction in primary-key order (two writers that lock overlapping sets in
+    the same order cannot deadlock; SQLite: ``BEGIN IMMEDIATE`` serializes writers already)."""
+    if not actuator_pks:
+        return {}
+    c = _ACTUATORS.c
+    rows = session.connection().execute(
+        select(c.id, c.last_logged_seq, c.last_logged_t_s, c.last_client_seq, c.deleted_at)
+        .where(c.id.in_(sorted(actuator_pks)))
+        .order_by(c.id)
+        .with_for_update()
     )
+    return {r.id: LogHead(r.id, r.last_logged_seq, r.last_logged_t_s, r.last_client_seq)
+            for r in rows if r.deleted_at is None}
 
 
-def add_batch(session: Session, row: TelemetryBatch) -> bool:
-    """Insert a log row; False when its batch id (or seq) is taken meanwhile."""
-    try:
-        with session.begin_nested():
-            session.add(row)
-            session.flush()
-    except IntegrityError:
-        return False
-    return True
+def logged_by_ids(session: Session, keys: Sequence[tuple[int, str]]) -> dict[tuple[int, str], LoggedBatch]:
+    """The logged batches among ``(actuator_pk, batch_id)`` keys."""
+    if not keys:
+        return {}
+    c = _BATCHES.c
+    rows = session.connection().execute(
+        select(c.actuator_pk, c.seq, c.batch_id, c.content_hash, c.n_samples, c.t_first_s,
+               c.t_last_s, c.received_at, c.end_of_run)
+        .where(c.actuator_pk.in_({pk for pk, _ in keys}), c.batch_id.in_({b for _, b in keys}))
+    )
+    wanted = set(keys)
+    return {
+        (r.actuator_pk, r.batch_id): LoggedBatch(r.seq, r.batch_id, r.content_hash, r.n_samples, r.t_first_s,
+                                                 r.t_last_s, r.received_at, r.end_of_run)
+        for r in rows if (r.actuator_pk, r.batch_id) in wanted
+    }
 
 
-def actuator_for_update(session: Session, actuator_pk: int) -> Actuator | None:
-    """The actuator row, locked for this transaction (SQLite: ``BEGIN IMMEDIATE`` serializes
-    writers already and ignores the clause)."""
-    return session.get(Actuator, actuator_pk, with_for_update=True)
+def insert_batches(session: Session, rows: Sequence[dict[str, object]]) -> None:
+    """Insert log rows (one executemany). A taken batch id or seq raises ``IntegrityError``:
+    it cannot happen while every append holds its actuator's row lock."""
+    if rows:
+        session.connection().execute(insert(_BATCHES), list(rows))
+
+
+def advance_heads(session: Session, heads: Sequence[LogHead]) -> None:
+    """Write the advanced log heads back to their (locked) actuator rows."""
+    if not heads:
+        return
+    c = _ACTUATORS.c
+    session.connection().execute(
+        update(_ACTUATORS)
+        .where(c.id == bindparam("pk"))
+        .values(last_logged_seq=bindparam("seq"), last_logged_t_s=bindparam("t_s"),
+                last_client_seq=bindparam("client_seq")),
+        [{"pk": h.actuator_pk, "seq": h.last_logged_seq, "t_s": h.last_logged_t_s,
+          "client_seq": h.last_client_seq} for h in heads],
+    )
 
 
 # ----------------------------------------------------------------------------- read-back
@@ -78,17 +141,6 @@ def first_kept_batch(session: Session, actuator_pk: int, from_seq: int, upto_seq
         .order_by(TelemetryBatch.seq)
         .limit(1)
     )
-
-
-def actuators_for_update(session: Session, actuator_pks: list[int]) -> dict[int, Actuator]:
-    """The actuator rows, locked for this transaction in primary-key order (two writers that
-    lock overlapping sets in the same order cannot deadlock)."""
-    if not actuator_pks:
-        return {}
-    rows = session.scalars(
-        select(Actuator).where(Actuator.id.in_(actuator_pks)).order_by(Actuator.id).with_for_update()
-    )
-    return {a.id: a for a in rows}
 
 
 def notify(session: Session, channel: str, payload: str) -> None:

@@ -98,7 +98,6 @@ async def post_telemetry(
     request: Request,
     tail: str,
     actuator_id: str,
-    db: DbDep,
     settings: SettingsDep,
     processor: ProcessorDep,
     p: IngestDep,
@@ -127,7 +126,7 @@ async def post_telemetry(
             batch_id=batch_id or idempotency_key, t0=t0, sample_rate_hz=sample_rate_hz, end_of_run=end_of_run
         )
         ack = await service.ingest_body(
-            request.app.state.log_writer, db, p.operator_id, tail, actuator_id, body, mt, params,
+            request.app.state.log_writer, request.app.state.actuator_lookup, p.operator_id, tail, actuator_id, body, mt, params,
             settings.max_batch_samples, BatchLimits.from_settings(settings),
         )
     except DomainError as exc:
