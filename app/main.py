@@ -141,6 +141,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         # /docs and /redoc are the system router's, with local assets (no CDN).
         docs_url=None,
         redoc_url=None,
+        # No OpenTelemetry here (Prometheus /metrics instead): skip its per-request checks.
+        telemetry={"tracing": False, "metrics": False, "logs": False, "operation_spans": False},
     )
     app.mount(
         system_router.DOCS_ASSETS_URL,

@@ -453,6 +453,30 @@ def bench_plain_write(server: Server, tail_prefix: str, n: int) -> dict[str, flo
         return _lat_figures(lat, time.perf_counter() - start)
 
 
+def bench_floor(server: Server, clients: int, n: int) -> dict[str, float]:
+    """GET /healthz (no key, no database, no thread) from ``clients`` concurrent clients: what
+    the HTTP stack alone (uvicorn, FastAPI, the middleware, the client on the same cores) costs."""
+    import httpx
+
+    async def run() -> tuple[list[float], float]:
+        limits = httpx.Limits(max_connections=clients, max_keepalive_connections=clients)
+        async with httpx.AsyncClient(base_url=server.url, timeout=60.0, limits=limits) as c:
+            lat: list[float] = []
+
+            async def one() -> None:
+                for _ in range(n):
+                    t0 = time.perf_counter()
+                    (await c.get("/healthz")).raise_for_status()
+                    lat.append(time.perf_counter() - t0)
+
+            start = time.perf_counter()
+            await asyncio.gather(*(one() for _ in range(clients)))
+            return lat, time.perf_counter() - start
+
+    lat, elapsed = asyncio.run(run())
+    return _lat_figures(lat, elapsed)
+
+
 async def _register_idle(
     server: Server, tail: str, n: int, batch_samples: int, concurrency: int, timeout_s: float
 ) -> None:
@@ -559,10 +583,12 @@ def run_backend(
                 cpu2 = tree_cpu_s(pid)
                 rate["plain_write"] = bench_plain_write(server, f"W{run_id}-", max(50, args.post1 // 4))
                 cpu3 = tree_cpu_s(pid)
+                rate["floor_concurrent"] = bench_floor(server, args.post1_clients, args.post1_per_client)
+                cpu4 = tree_cpu_s(pid)
                 # Server CPU per request, the apply of each sample included (sequential case:
                 # measured until the last one is applied).
                 for name, used in (("post1_sequential", cpu1 - cpu0), ("post1_concurrent", cpu2 - cpu1),
-                                   ("plain_write", cpu3 - cpu2)):
+                                   ("plain_write", cpu3 - cpu2), ("floor_concurrent", cpu4 - cpu3)):
                     rate[name]["server_cpu_ms"] = 1e3 * used / rate[name]["requests"]
                 for name, fig in rate.items():
                     print(f"[{backend}] {name}: {fig['per_s']:,.0f} requests/s, median "
@@ -619,6 +645,8 @@ def print_table(results: dict[str, dict]) -> None:
         ("post1_concurrent", "server_cpu_ms", "32 clients: server CPU ms/request", None),
         ("plain_write", "median_ms", "plain write, sequential: median ms", None),
         ("plain_write", "server_cpu_ms", "plain write: server CPU ms/request", None),
+        ("floor_concurrent", "per_s", "GET /healthz, 32 clients: requests/s", None),
+        ("floor_concurrent", "server_cpu_ms", "GET /healthz: server CPU ms/request", None),
     ]
     for key, field, text, goal in cases:
         vals = [results[lab].get("rate", {}).get(key, {}).get(field) for lab in labels]
