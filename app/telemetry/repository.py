@@ -40,21 +40,36 @@ class LoggedBatch:
     end_of_run: bool
 
 
-# The log writer's SQL is Core, on the session's connection: one statement per group for the
-# heads, the retries and the inserts, whatever the number of appends (no ORM unit of work).
+# The log writer's SQL: Core statements built once (only their parameters change), on the
+# session's connection, one of each per group whatever the number of appends (no ORM unit of
+# work, no statement construction per call).
+_A, _B = _ACTUATORS.c, _BATCHES.c
+_LOCK_HEADS = (
+    select(_A.id, _A.last_logged_seq, _A.last_logged_t_s, _A.last_client_seq, _A.deleted_at)
+    .where(_A.id.in_(bindparam("pks", expanding=True)))
+    .order_by(_A.id)
+    .with_for_update()
+)
+_LOGGED_BY_IDS = select(
+    _B.actuator_pk, _B.seq, _B.batch_id, _B.content_hash, _B.n_samples, _B.t_first_s, _B.t_last_s,
+    _B.received_at, _B.end_of_run,
+).where(_B.actuator_pk.in_(bindparam("pks", expanding=True)), _B.batch_id.in_(bindparam("ids", expanding=True)))
+_INSERT_BATCHES = insert(_BATCHES)
+_ADVANCE_HEADS = (
+    update(_ACTUATORS)
+    .where(_A.id == bindparam("pk"))
+    .values(last_logged_seq=bindparam("seq"), last_logged_t_s=bindparam("t_s"),
+            last_client_seq=bindparam("client_seq"))
+)
+
+
 def lock_log_heads(session: Session, actuator_pks: Sequence[int]) -> dict[int, LogHead]:
     """The log heads of the live (not deleted) actuators among ``actuator_pks``, their rows
     locked for this transaction in primary-key order (two writers that lock overlapping sets in
     the same order cannot deadlock; SQLite: ``BEGIN IMMEDIATE`` serializes writers already)."""
     if not actuator_pks:
         return {}
-    c = _ACTUATORS.c
-    rows = session.connection().execute(
-        select(c.id, c.last_logged_seq, c.last_logged_t_s, c.last_client_seq, c.deleted_at)
-        .where(c.id.in_(sorted(actuator_pks)))
-        .order_by(c.id)
-        .with_for_update()
-    )
+    rows = session.connection().execute(_LOCK_HEADS, {"pks": sorted(actuator_pks)})
     return {r.id: LogHead(r.id, r.last_logged_seq, r.last_logged_t_s, r.last_client_seq)
             for r in rows if r.deleted_at is None}
 
@@ -63,11 +78,8 @@ def logged_by_ids(session: Session, keys: Sequence[tuple[int, str]]) -> dict[tup
     """The logged batches among ``(actuator_pk, batch_id)`` keys."""
     if not keys:
         return {}
-    c = _BATCHES.c
     rows = session.connection().execute(
-        select(c.actuator_pk, c.seq, c.batch_id, c.content_hash, c.n_samples, c.t_first_s,
-               c.t_last_s, c.received_at, c.end_of_run)
-        .where(c.actuator_pk.in_({pk for pk, _ in keys}), c.batch_id.in_({b for _, b in keys}))
+        _LOGGED_BY_IDS, {"pks": sorted({pk for pk, _ in keys}), "ids": sorted({b for _, b in keys})}
     )
     wanted = set(keys)
     return {
@@ -81,22 +93,17 @@ def insert_batches(session: Session, rows: Sequence[dict[str, object]]) -> None:
     """Insert log rows (one executemany). A taken batch id or seq raises ``IntegrityError``:
     it cannot happen while every append holds its actuator's row lock."""
     if rows:
-        session.connection().execute(insert(_BATCHES), list(rows))
+        session.connection().execute(_INSERT_BATCHES, list(rows))
 
 
 def advance_heads(session: Session, heads: Sequence[LogHead]) -> None:
     """Write the advanced log heads back to their (locked) actuator rows."""
-    if not heads:
-        return
-    c = _ACTUATORS.c
-    session.connection().execute(
-        update(_ACTUATORS)
-        .where(c.id == bindparam("pk"))
-        .values(last_logged_seq=bindparam("seq"), last_logged_t_s=bindparam("t_s"),
-                last_client_seq=bindparam("client_seq")),
-        [{"pk": h.actuator_pk, "seq": h.last_logged_seq, "t_s": h.last_logged_t_s,
-          "client_seq": h.last_client_seq} for h in heads],
-    )
+    if heads:
+        session.connection().execute(
+            _ADVANCE_HEADS,
+            [{"pk": h.actuator_pk, "seq": h.last_logged_seq, "t_s": h.last_logged_t_s,
+              "client_seq": h.last_client_seq} for h in heads],
+        )
 
 
 # ----------------------------------------------------------------------------- read-back
