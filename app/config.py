@@ -88,6 +88,16 @@ class Settings(BaseSettings):
     # How often an open WebSocket re-reads its key: a revoked key or a lost scope closes the
     # connection (1008) within this time, whichever process revoked it.
     ws_auth_recheck_s: float = Field(default=5.0, gt=0)
+    # A valid API key is remembered this long, so most requests read no key from the database:
+    # a key revoked or re-scoped by another process keeps working (with its old scopes) for at
+    # most this time. 0 reads the key on every request.
+    auth_cache_ttl_s: float = Field(default=5.0, ge=0)
+    # The actuator a telemetry path names (its primary key and channels), remembered this long
+    # per operator; the log writer re-checks every append against the locked actuator row, so a
+    # deletion is honoured at once whichever process made it. 0 turns it off.
+    actuator_cache_ttl_s: float = Field(default=30.0, ge=0)
+    # Entries of each of those two caches (the oldest makes room).
+    lookup_cache_entries: int = Field(default=10_000, gt=0)
     socket_send_buffer_bytes: int | None = Field(default=None, gt=0)
     shutdown_timeout_s: float = Field(default=10.0, gt=0)
     # Fleet event subscribers re-read the log this often (events applied by other processes).

@@ -58,6 +58,16 @@ class StaleBatch(DomainError):
     status_code = 409
 
 
+class ActuatorDeleted(StaleBatch):
+    """The actuator of an append is deleted (or purged): found by the log writer under the row
+    lock, so whatever process deleted it. A ``StaleBatch`` on the wire (a WebSocket closes with
+    this detail); a REST append looks the actuator up again to answer 404 or 410."""
+
+    @property
+    def name(self) -> str:
+        return "StaleBatch"
+
+
 class IdempotencyConflict(DomainError):
     status_code = 409
 

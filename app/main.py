@@ -13,7 +13,7 @@ from fastapi.staticfiles import StaticFiles
 from app import __version__
 from app.alarms import router as alarms_router
 from app.auth import router as auth_router
-from app.auth.service import SCOPES, ensure_key
+from app.auth.service import SCOPES, KeyVerifier, ensure_key
 from app.config import Settings, get_settings
 from app.dashboard import router as dashboard_router
 from app.db import Database
@@ -29,6 +29,7 @@ from app.streams import router as streams_router
 from app.system import router as system_router
 from app.telemetry import router as telemetry_router
 from app.telemetry.body import IngestMemory
+from app.telemetry.service import ActuatorLookup
 from app.telemetry.validation import ControlCharGuard
 from app.telemetry.writer import LogWriter
 from app.webhooks import router as webhooks_router
@@ -96,6 +97,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             listener.start()
         app.state.db = db
         app.state.settings = settings
+        app.state.key_verifier = KeyVerifier(db, settings.auth_cache_ttl_s, settings.lookup_cache_entries)
+        app.state.actuator_lookup = ActuatorLookup(db, settings.actuator_cache_ttl_s, settings.lookup_cache_entries)
         app.state.processor = processor
         deliverer = Deliverer(db, settings) if settings.webhooks_enabled else None
         app.state.deliverer = deliverer
@@ -140,6 +143,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         # /docs and /redoc are the system router's, with local assets (no CDN).
         docs_url=None,
         redoc_url=None,
+        # No OpenTelemetry here (Prometheus /metrics instead): skip its per-request checks.
+        telemetry={"tracing": False, "metrics": False, "logs": False, "operation_spans": False},
     )
     app.mount(
         system_router.DOCS_ASSETS_URL,

@@ -9,6 +9,8 @@ from dataclasses import dataclass
 from sqlalchemy.orm import Session
 
 from app.auth import repository
+from app.cache import TtlCache
+from app.db import Database
 from app.errors import Forbidden, InvalidConfig, Unauthorized
 from app.models import ApiKey, Operator
 
@@ -74,13 +76,18 @@ def ensure_key(session: Session, operator: str, key: str, scopes: list[str], nam
         create_key(session, operator, scopes, name=name, key=key)
 
 
-def authenticate(session: Session, authorization: str | None) -> Principal:
+def key_digest(authorization: str | None) -> str:
+    """The digest of the bearer key in an ``Authorization`` header (401 when malformed)."""
     if not authorization:
         raise Unauthorized("missing Authorization header: send 'Authorization: Bearer <key>'")
     scheme, _, token = authorization.partition(" ")
     if scheme.lower() != "bearer" or not token.strip():
         raise Unauthorized("Authorization must be 'Bearer <key>'")
-    found = repository.active_key_with_operator(session, hash_key(token.strip()))
+    return hash_key(token.strip())
+
+
+def principal_of(session: Session, digest: str) -> Principal:
+    found = repository.active_key_with_operator(session, digest)
     if found is None:
         raise Unauthorized("unknown or revoked API key")
     key, op_name = found
@@ -90,6 +97,37 @@ def authenticate(session: Session, authorization: str | None) -> Principal:
         scopes=frozenset(key.scopes.split(",")),
         key_id=key.id,
     )
+
+
+def authenticate(session: Session, authorization: str | None) -> Principal:
+    return principal_of(session, key_digest(authorization))
+
+
+class KeyVerifier:
+    """Verifies the API key of each request, remembering a valid key's principal for
+    ``ttl_s`` seconds (``FLEETHEALTH_AUTH_CACHE_TTL_S``): a key revoked or re-scoped by any
+    process stops working, or loses the scope, within that time. Unknown and revoked keys are
+    never remembered (each such request reads the database)."""
+
+    def __init__(self, db: Database, ttl_s: float, max_entries: int) -> None:
+        self.db = db
+        self.cache: TtlCache[str, Principal] = TtlCache(ttl_s, max_entries)
+
+    def cached(self, authorization: str | None) -> Principal | None:
+        """The remembered principal of this header, without touching the database."""
+        return self.cache.get(key_digest(authorization))
+
+    def verify(self, authorization: str | None) -> Principal:
+        """The header's principal, from the database unless remembered (blocking)."""
+        digest = key_digest(authorization)
+        found = self.cache.get(digest)
+        if found is not None:
+            return found
+        generation = self.cache.generation()
+        with self.db.read() as s:
+            principal = principal_of(s, digest)
+        self.cache.put(digest, principal, generation)
+        return principal
 
 
 def recheck(session: Session, principal: Principal, scope: str) -> None:

@@ -5,6 +5,8 @@ as an already parsed and checked batch. The writer thread takes the first queued
 every other one queued behind it (up to ``max_group``), locks their actuator rows in primary-key
 order (two API processes on one PostgreSQL never deadlock), runs the log's rules
 (:func:`app.telemetry.service.log_batch`) for each in arrival order, and commits them together.
+The group costs a fixed number of Core statements (lock the heads, find the retries, insert the
+rows, advance the heads), not a round of ORM work per append.
 Each append's future is resolved only after that commit: an acknowledgement still means the batch
 is durable (invariant 1), but one fsync (SQLite) or one commit round trip (PostgreSQL) now covers
 every batch that arrived while the previous group was being written.
@@ -30,12 +32,15 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from prometheus_client import Histogram
+from sqlalchemy.exc import IntegrityError
 
 from app.db import Database
-from app.errors import DomainError, StaleBatch
+from app.errors import ActuatorDeleted, DomainError, IdempotencyConflict
 from app.ingest import ParsedBatch
+from app.models import utcnow
 from app.processing.recent import RecentBatches
 from app.telemetry import repository
+from app.telemetry.repository import LoggedBatch
 
 if TYPE_CHECKING:
     from app.telemetry.service import Ack
@@ -135,6 +140,10 @@ class LogWriter:
             outcomes = self._commit(group)
         except Exception as exc:
             if len(group) == 1:
+                if isinstance(exc, IntegrityError):
+                    # Only if a writer appended without the actuator's row lock.
+                    exc = IdempotencyConflict(
+                        f"batch_id {group[0].batch.batch_id!r} is being logged concurrently; retry")
                 _settle(group[0].future, exc)
                 return
             log.warning("a group of %d appends failed (%s); committing them one by one", len(group), exc)
@@ -162,22 +171,33 @@ class LogWriter:
         from app.telemetry.service import log_batch
 
         outcomes: list[Ack | DomainError] = []
+        received_at = utcnow()
         with self.db.write() as s:
-            actuators = repository.actuators_for_update(s, sorted({i.actuator_pk for i in group}))
+            heads = repository.lock_log_heads(s, sorted({i.actuator_pk for i in group}))
+            priors = repository.logged_by_ids(s, [(i.actuator_pk, i.batch.batch_id) for i in group])
+            rows: list[dict[str, object]] = []
             for item in group:
-                act = actuators.get(item.actuator_pk)
+                key = (item.actuator_pk, item.batch.batch_id)
+                head = heads.get(item.actuator_pk)
                 try:
-                    if act is None or act.deleted_at is not None:
+                    if head is None:
                         # Refused like a stale frame (a WebSocket closes with a policy code and this detail).
-                        raise StaleBatch("the actuator was deleted; its stream takes no more frames")
-                    outcomes.append(log_batch(s, act, item.batch))
+                        raise ActuatorDeleted("the actuator was deleted; its stream takes no more frames")
+                    ack, row = log_batch(head, item.batch, priors.get(key), received_at)
                 except DomainError as exc:
                     outcomes.append(exc)
-            if self.notify_channel is not None:
-                fresh = sorted({i.actuator_pk for i, o in zip(group, outcomes, strict=True)
-                                if not isinstance(o, DomainError) and not o.replayed})
-                if fresh:
-                    repository.notify(s, self.notify_channel, f"{self.origin} " + ",".join(map(str, fresh)))
+                    continue
+                if row is not None:
+                    rows.append(row)
+                    # The same batch id again later in this group is a retry of this one.
+                    priors[key] = LoggedBatch(ack.seq, ack.batch_id, str(row["content_hash"]), ack.n_samples,
+                                              ack.t_first_s, ack.t_last_s, ack.received_at, ack.end_of_run)
+                outcomes.append(ack)
+            repository.insert_batches(s, rows)
+            advanced = {a.actuator_pk for a in outcomes if not isinstance(a, DomainError) and not a.replayed}
+            repository.advance_heads(s, [heads[pk] for pk in sorted(advanced)])
+            if self.notify_channel is not None and advanced:
+                repository.notify(s, self.notify_channel, f"{self.origin} " + ",".join(map(str, sorted(advanced))))
         return outcomes
 
 
