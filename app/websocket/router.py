@@ -40,7 +40,8 @@ from app.events.service import LOGGED_TYPES
 from app.ingest import UnsupportedFrame
 from app.processing.processor import Processor
 from app.telemetry import service as telemetry
-from app.telemetry.validation import BatchLimits
+from app.telemetry.validation import DEFAULT_LIMITS, BatchLimits
+from app.telemetry.writer import LogWriter
 from app.websocket import service
 from app.websocket.hub import ALL_FLEET_TYPES, DEFAULT_FLEET_TYPES, Hub, Subscription, public
 
@@ -52,6 +53,8 @@ WS_FRAMES = Counter("fleethealth_ws_frames_total", "Streamed frames by outcome",
 WS_DROPPED = Counter("fleethealth_ws_subscribers_dropped_total", "Fleet subscribers dropped as too slow")
 WS_FLOW = Counter("fleethealth_ws_flow_total", "slow_down and resume messages sent to stream clients", ["message"])
 WS_QUEUED = Gauge("fleethealth_ws_queued_frames", "Frames read from stream connections, not logged yet")
+# Bound once: ``labels()`` per frame costs a lock and a dict look-up.
+FRAMES_LOGGED = WS_FRAMES.labels("logged")
 WS_KEY_CLOSES = Counter(
     "fleethealth_ws_key_closes_total", "WebSockets closed because their key was revoked or lost its scope", ["error"]
 )
@@ -215,6 +218,7 @@ class _StreamConn:
     channels: list[str]
     with_samples: bool
     sub: Subscription
+    writer: LogWriter
     lock: asyncio.Lock = field(default_factory=asyncio.Lock)
     inflight: OrderedDict[int, int | None] = field(default_factory=OrderedDict)  # seq -> client_seq
     ready: dict[int, dict[str, Any]] = field(default_factory=dict)  # seq -> result message
@@ -229,6 +233,7 @@ class _StreamConn:
     paused: bool = False  # slow_down sent, resume not yet
     results_rate: RateMeter = field(default_factory=lambda: RateMeter())
     sent_seq: int = 0  # the last result sent (older pushes are stale)
+    limits: BatchLimits = DEFAULT_LIMITS
     read_back_at: float = field(default_factory=time.monotonic)  # of the last read-back
 
     # ------------------------------------------------------------------ results
@@ -392,8 +397,7 @@ class _StreamConn:
         """Log one frame and acknowledge it; False when it was refused (connection closed)."""
         try:
             client_seq, ack = await telemetry.ingest_frame(
-                self.ws.app.state.log_writer, self.actuator_pk, self.channels, data,
-                self.settings.max_batch_samples, BatchLimits.from_settings(self.settings),
+                self.writer, self.actuator_pk, self.channels, data, self.settings.max_batch_samples, self.limits
             )
         except UnsupportedFrame as exc:
             WS_FRAMES.labels("unsupported").inc()
@@ -420,7 +424,7 @@ class _StreamConn:
             WS_FRAMES.labels("duplicate").inc()
             await _send(self.ws, self.lock, {"type": "duplicate", "client_seq": client_seq, "seq": ack.seq})
             return True
-        WS_FRAMES.labels("logged").inc()
+        FRAMES_LOGGED.inc()
         self.inflight[ack.seq] = client_seq
         self.inflight_added.set()
         if ack.seq in self.ready:  # applied and pushed before this acknowledgement was read
@@ -470,6 +474,8 @@ async def stream(ws: WebSocket, tail: str, actuator_id: str) -> None:
         sub=sub,
         budget=_frame_budget(ws, settings),
         sent_seq=start.last_applied_seq,
+        writer=ws.app.state.log_writer,
+        limits=BatchLimits.from_settings(settings),
     )
     # Frames logged before a dropped connection and not applied yet: their results come here.
     for seq, client_seq in start.pending:
