@@ -31,6 +31,7 @@ fleet board and ``/metrics`` show it, and a ``?wait`` on one of its batches answ
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import queue
 import threading
@@ -84,8 +85,15 @@ NOTIFY_MAX_BYTES = 7000
 STREAM_META_CACHE = 4096
 # Applied marks remembered for ?wait= without a read.
 APPLIED_MARKS_CACHE = 4096
+# Streams of a group whose rows are read in one query each (a time budget may end the group
+# before all are applied: they are read a few at a time, not all at once).
+LOAD_CHUNK = 8
 # Per-sample output retention runs at most this often (it scans the table).
 SAMPLE_OUTPUT_PRUNE_EVERY_S = 60.0
+
+
+class _StreamFailed(Exception):
+    """Rolls back the transaction of a group of one stream whose apply raised."""
 
 
 @dataclass(frozen=True)
@@ -186,6 +194,11 @@ class Processor:
         finally:
             self.hub.unwatch(actuator_pk, waiter)
 
+    def known_applied(self, actuator_pk: int) -> int | None:
+        """The stream's applied mark as last seen here (applied here or announced by another
+        process), None when not remembered."""
+        return self._applied.get(actuator_pk)
+
     def _remember_applied(self, actuator_pk: int, applied_seq: int) -> None:
         with self._applied_lock:  # the processor and the notification listener both call this
             if applied_seq > self._applied.get(actuator_pk, 0):
@@ -250,29 +263,41 @@ class Processor:
         idle: list[int] = []
         budget = self.settings.processor_max_samples_per_txn
         left: list[int] = []
+        max_batches = self.settings.processor_max_batches_per_txn
+        ready_kinds = self.ready_kinds()
+        # One stream alone needs no savepoint: its error rolls the whole transaction back.
+        alone = len(pks) == 1
         try:
             # Not waiting for the disk: an apply lost in a power cut is redone from the log.
             with self.db.write(durable=False) as s:
+                loaded = service.GroupLoad({}, {}, {})
                 for i, pk in enumerate(pks):
                     # The transaction holds the database's write lock (SQLite: the only one), so
                     # the log writer's acknowledgements wait behind it: bound its length.
                     if budget <= 0 or (i and time.perf_counter() - t0 > self.settings.processor_txn_budget_s):
                         left = pks[i:]
                         break
+                    if i % LOAD_CHUNK == 0:  # the next streams' rows, read together
+                        loaded = service.load_group(
+                            s, pks[i : i + LOAD_CHUNK], is_sqlite=self.db.is_sqlite, max_batches=max_batches
+                        )
                     try:
-                        with s.begin_nested():
+                        with contextlib.nullcontext() if alone else s.begin_nested():
                             res = service.apply_pending(
                                 s,
                                 pk,
                                 max_samples=min(budget, self.settings.processor_max_samples_per_txn),
-                                max_batches=self.settings.processor_max_batches_per_txn,
+                                max_batches=max_batches,
                                 store_outputs=self.settings.store_sample_outputs,
                                 is_sqlite=self.db.is_sqlite,
                                 recent=self.recent,
-                                ready_kinds=self.ready_kinds(),
+                                ready_kinds=ready_kinds,
+                                loaded=loaded,
                             )
                     except Exception as exc:  # this stream's savepoint is rolled back
                         errors.append((pk, exc))
+                        if alone:
+                            raise _StreamFailed from exc
                         continue
                     if res is None:
                         idle.append(pk)
@@ -282,6 +307,8 @@ class Processor:
                 if self.applied_channel is not None:
                     for res in results:
                         self._announce(s, res)
+        except _StreamFailed:  # the one stream's error: its transaction is rolled back
+            pass
         except Exception as commit_exc:  # the commit failed: no stream of the group was applied
             for pk in pks:
                 self._attempt_failed(pk, commit_exc)

@@ -4,10 +4,11 @@ applying them produced, mark a stream failed, and read applied results back."""
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any
 
-from sqlalchemy import delete, func, insert, select, text, update
+from sqlalchemy import bindparam, delete, func, insert, select, text, update
 from sqlalchemy.orm import Session
 
 from app.models import (
@@ -28,29 +29,104 @@ from app.processing.orchestration import Rows
 OUTPUT_MODELS: tuple[Any, ...] = (HealthWindowRow, SampleOutputRow, EstimatorEventRow, RulEstimateRow)
 
 
-def claim(session: Session, actuator_pk: int, *, is_sqlite: bool) -> Stream | None:
-    """Lock the stream for this transaction. None when another worker holds it (PostgreSQL:
-    ``FOR UPDATE SKIP LOCKED``; on SQLite ``BEGIN IMMEDIATE`` already serializes writers)."""
-    stmt = select(Stream).where(Stream.actuator_pk == actuator_pk)
-    if not is_sqlite:
-        stmt = stmt.with_for_update(skip_locked=True)
-    return session.scalar(stmt)
+@dataclass(frozen=True)
+class PendingBatch:
+    """A logged batch not applied yet, without its payload (read only when the batch is not
+    already decoded in memory, :class:`~app.processing.recent.RecentBatches`)."""
+
+    actuator_pk: int
+    seq: int
+    batch_id: str
+    n_samples: int
+    t_first_s: float
+    t_last_s: float
+    end_of_run: bool
 
 
-def pending_batches(
-    session: Session, stream: Stream, *, max_samples: int, max_batches: int
-) -> tuple[list[TelemetryBatch], bool]:
-    """The next logged batches after the applied mark, without a gap (a seq not committed yet
-    ends the run), up to ``max_samples`` samples (at least one batch) and ``max_batches``; and
-    whether more contiguous batches follow them (a limit stopped the run)."""
-    pending: list[TelemetryBatch] = []
-    total = 0
-    for row in session.scalars(
-        select(TelemetryBatch)
-        .where(TelemetryBatch.actuator_pk == stream.actuator_pk, TelemetryBatch.seq > stream.last_applied_seq)
-        .order_by(TelemetryBatch.seq)
-        .limit(max_batches + 1)
+_PENDING_COLUMNS = (
+    TelemetryBatch.actuator_pk,
+    TelemetryBatch.seq,
+    TelemetryBatch.batch_id,
+    TelemetryBatch.n_samples,
+    TelemetryBatch.t_first_s,
+    TelemetryBatch.t_last_s,
+    TelemetryBatch.end_of_run,
+)
+
+
+# The statements of every apply, built once: building a statement costs more than running it
+# on SQLite (and their compiled forms are cached by these very objects).
+_CLAIM = select(Stream).where(Stream.actuator_pk.in_(bindparam("pks", expanding=True))).order_by(Stream.actuator_pk)
+_CLAIM_SKIP_LOCKED = _CLAIM.with_for_update(skip_locked=True)
+_ESTIMATORS = (
+    select(EstimatorState)
+    .where(EstimatorState.actuator_pk.in_(bindparam("pks", expanding=True)))
+    .order_by(EstimatorState.actuator_pk, EstimatorState.estimator)
+)
+_PENDING = (
+    select(*_PENDING_COLUMNS)
+    .join(Stream, Stream.actuator_pk == TelemetryBatch.actuator_pk)
+    .where(
+        TelemetryBatch.actuator_pk.in_(bindparam("pks", expanding=True)),
+        TelemetryBatch.seq > Stream.last_applied_seq,
+        TelemetryBatch.seq <= Stream.last_applied_seq + bindparam("window"),
+    )
+    .order_by(TelemetryBatch.actuator_pk, TelemetryBatch.seq)
+)
+_PAYLOADS = select(TelemetryBatch.seq, TelemetryBatch.payload).where(
+    TelemetryBatch.actuator_pk == bindparam("pk"), TelemetryBatch.seq.between(bindparam("lo"), bindparam("hi"))
+)
+_MARK_APPLIED = (
+    update(TelemetryBatch)
+    .where(TelemetryBatch.actuator_pk == bindparam("pk"), TelemetryBatch.seq.between(bindparam("lo"), bindparam("hi")))
+    .values(applied_at=bindparam("at"))
+    .execution_options(synchronize_session=False)
+)
+
+
+def claim_many(session: Session, actuator_pks: Sequence[int], *, is_sqlite: bool) -> dict[int, Stream]:
+    """Lock the streams for this transaction, in one query; those another worker holds are
+    left out (PostgreSQL: ``FOR UPDATE SKIP LOCKED``, which never waits, so no lock order can
+    deadlock; on SQLite ``BEGIN IMMEDIATE`` already serializes writers)."""
+    stmt = _CLAIM if is_sqlite else _CLAIM_SKIP_LOCKED
+    return {st.actuator_pk: st for st in session.scalars(stmt, {"pks": list(actuator_pks)})}
+
+
+def estimators_of(session: Session, actuator_pks: Sequence[int]) -> dict[int, list[EstimatorState]]:
+    """Each stream's estimator rows, by estimator name, in one query."""
+    out: dict[int, list[EstimatorState]] = {pk: [] for pk in actuator_pks}
+    if out:
+        for er in session.scalars(_ESTIMATORS, {"pks": list(out)}):
+            out[er.actuator_pk].append(er)
+    return out
+
+
+def pending_of(
+    session: Session, streams: Sequence[Stream], max_batches: int
+) -> dict[int, list[PendingBatch]]:
+    """Each stream's next logged batches after its applied mark, in stream order, at most
+    ``max_batches + 1`` (the one more tells whether a limit stops the run), in one query.
+    Seqs are given out one by one, so the window ``mark < seq <= mark + max_batches + 1``
+    holds them; a seq not committed yet is a gap, found by :func:`take_pending`."""
+    out: dict[int, list[PendingBatch]] = {st.actuator_pk: [] for st in streams}
+    if not out:
+        return out
+    for pk, seq, batch_id, n, t_first, t_last, eor in session.execute(
+        _PENDING, {"pks": list(out), "window": max_batches + 1}
     ):
+        out[pk].append(PendingBatch(pk, seq, batch_id, n, t_first, t_last, bool(eor)))
+    return out
+
+
+def take_pending(
+    stream: Stream, candidates: Sequence[PendingBatch], *, max_samples: int, max_batches: int
+) -> tuple[list[PendingBatch], bool]:
+    """The batches of ``candidates`` (:func:`pending_of`) that follow the applied mark without
+    a gap, up to ``max_samples`` samples (at least one batch) and ``max_batches``; and whether
+    more contiguous batches follow them (a limit stopped the run)."""
+    pending: list[PendingBatch] = []
+    total = 0
+    for row in candidates:
         if row.seq != stream.last_applied_seq + len(pending) + 1:
             break
         if len(pending) == max_batches or (pending and total + row.n_samples > max_samples):
@@ -58,6 +134,29 @@ def pending_batches(
         pending.append(row)
         total += row.n_samples
     return pending, False
+
+
+def payloads(session: Session, actuator_pk: int, seqs: Sequence[int]) -> dict[int, bytes | None]:
+    """The stored payloads of some of a stream's batches, by seq."""
+    if not seqs:
+        return {}
+    wanted = set(seqs)
+    rows = session.execute(_PAYLOADS, {"pk": actuator_pk, "lo": min(seqs), "hi": max(seqs)})
+    return {int(seq): payload for seq, payload in rows if seq in wanted}
+
+
+def mark_batches_applied(session: Session, actuator_pk: int, first_seq: int, last_seq: int, at: datetime) -> None:
+    """Stamp the stream's batches first_seq..last_seq as applied (one statement)."""
+    session.execute(_MARK_APPLIED, {"pk": actuator_pk, "lo": first_seq, "hi": last_seq, "at": at})
+
+
+def claim(session: Session, actuator_pk: int, *, is_sqlite: bool) -> Stream | None:
+    """Lock the stream for this transaction. None when another worker holds it (PostgreSQL:
+    ``FOR UPDATE SKIP LOCKED``; on SQLite ``BEGIN IMMEDIATE`` already serializes writers)."""
+    stmt = select(Stream).where(Stream.actuator_pk == actuator_pk)
+    if not is_sqlite:
+        stmt = stmt.with_for_update(skip_locked=True)
+    return session.scalar(stmt)
 
 
 def streams_pending(session: Session, actuator_pks: Sequence[int]) -> list[int]:
@@ -104,12 +203,13 @@ def estimators(session: Session, actuator_pk: int) -> list[EstimatorState]:
     )
 
 
+_INSERTS = tuple(insert(model) for model in OUTPUT_MODELS)
+
+
 def insert_rows(session: Session, rows: Rows) -> None:
-    for items, model in zip(
-        (rows.health, rows.outputs, rows.events, rows.rul), OUTPUT_MODELS, strict=True
-    ):
+    for items, stmt in zip((rows.health, rows.outputs, rows.events, rows.rul), _INSERTS, strict=True):
         if items:
-            session.execute(insert(model), items)
+            session.execute(stmt, items)
 
 
 def delete_outputs(session: Session, actuator_pk: int, estimator: str, baseline: int | None = None) -> None:

@@ -66,13 +66,20 @@ class ApplyResult:
     more: bool = False
 
 
-def decode(row: TelemetryBatch, recent: RecentBatches | None = None) -> LoggedBatch:
-    """A logged batch, decoded (taken from ``recent`` when this process just logged it)."""
+def decode(
+    row: TelemetryBatch | repository.PendingBatch,
+    recent: RecentBatches | None = None,
+    payload: bytes | None = None,
+) -> LoggedBatch:
+    """A logged batch, decoded (taken from ``recent`` when this process just logged it; else
+    from ``payload``, or the row's own payload when it carries one)."""
     batch = recent.take(row.actuator_pk, row.seq) if recent is not None else None
     if batch is None:
-        if row.payload is None:
+        if payload is None and isinstance(row, TelemetryBatch):
+            payload = row.payload
+        if payload is None:
             raise LookupError(f"batch seq {row.seq} has no payload in the log")
-        cols = decode_columns(row.payload)
+        cols = decode_columns(payload)
         t_s = cols.pop(TIME_COLUMN)
         batch = Batch(t_s=t_s, channels=cols, end_of_run=row.end_of_run)
     return LoggedBatch(
@@ -85,6 +92,44 @@ def decode(row: TelemetryBatch, recent: RecentBatches | None = None) -> LoggedBa
     )
 
 
+def _decode_pending(
+    session: Session, pending: Sequence[repository.PendingBatch], recent: RecentBatches | None
+) -> list[LoggedBatch]:
+    """Decode the batches, reading from the log only the payloads not held in ``recent``."""
+    held = {b.seq: recent.take(b.actuator_pk, b.seq) for b in pending} if recent is not None else {}
+    missing = [b.seq for b in pending if held.get(b.seq) is None]
+    stored = repository.payloads(session, pending[0].actuator_pk, missing) if missing else {}
+    out = []
+    for b in pending:
+        batch = held.get(b.seq)
+        if batch is None:
+            out.append(decode(b, None, stored.get(b.seq)))
+        else:
+            out.append(LoggedBatch(b.seq, b.batch_id, b.t_first_s, b.t_last_s, b.n_samples, batch))
+    return out
+
+
+@dataclass
+class GroupLoad:
+    """What a group of streams' applies read first, in three queries for the whole group:
+    the claimed streams (those another worker holds are missing), their estimator rows and
+    their next logged batches (without payloads)."""
+
+    streams: dict[int, Stream]
+    estimators: dict[int, list[EstimatorState]]
+    candidates: dict[int, list[repository.PendingBatch]]
+
+
+def load_group(session: Session, actuator_pks: Sequence[int], *, is_sqlite: bool, max_batches: int) -> GroupLoad:
+    streams = repository.claim_many(session, actuator_pks, is_sqlite=is_sqlite)
+    live = [st for st in streams.values() if st.failure is None]
+    return GroupLoad(
+        streams=streams,
+        estimators=repository.estimators_of(session, [st.actuator_pk for st in live]),
+        candidates=repository.pending_of(session, live, max_batches),
+    )
+
+
 def _label(rows: Rows, est_rows: Sequence[EstimatorState]) -> None:
     """Stamp every output row with the config version and baseline of its estimator."""
     labels = {er.estimator: (er.config_version, er.baseline) for er in est_rows}
@@ -94,8 +139,8 @@ def _label(rows: Rows, est_rows: Sequence[EstimatorState]) -> None:
 
 
 def _at_baseline_boundary(
-    stream: Stream, est_rows: Sequence[EstimatorState], pending: list[TelemetryBatch]
-) -> list[TelemetryBatch]:
+    stream: Stream, est_rows: Sequence[EstimatorState], pending: list[repository.PendingBatch]
+) -> list[repository.PendingBatch]:
     """The batches of one baseline: a maintenance action recorded while batches were pending
     restarts the estimators at ``reset_at_seq``. Batches before it are applied first (to the
     old baseline); at it, the estimators start the new baseline."""
@@ -132,9 +177,14 @@ def apply_pending(
     max_batches: int = MAX_BATCHES_PER_QUERY,
     recent: RecentBatches | None = None,
     ready_kinds: frozenset[str] | None = None,
+    loaded: GroupLoad | None = None,
 ) -> ApplyResult | None:
     """Apply the next pending batches of one stream inside the caller's transaction: claim,
     load, run the estimators (pure), store outputs, states and the applied mark together.
+
+    ``loaded`` is what :func:`load_group` read for a group of streams this one belongs to
+    (loaded with the same ``max_batches``, in this transaction); without it the stream is
+    claimed and loaded alone.
 
     Returns None when another worker holds the stream, the stream is failed, nothing is
     pending, or an estimator of the stream is of a kind outside ``ready_kinds`` (its kernels
@@ -144,28 +194,31 @@ def apply_pending(
         StateUnreadable: an estimator's state has a version this build cannot read (nothing
             is written; the caller replays that estimator or marks the stream failed).
     """
-    stream = repository.claim(session, actuator_pk, is_sqlite=is_sqlite)
+    if loaded is None:
+        loaded = load_group(session, [actuator_pk], is_sqlite=is_sqlite, max_batches=max_batches)
+    stream = loaded.streams.get(actuator_pk)
     if stream is None or stream.failure is not None:
         return None
-    est_rows = repository.estimators(session, actuator_pk)
+    est_rows = loaded.estimators.get(actuator_pk, [])
     if ready_kinds is not None and any(er.estimator not in ready_kinds for er in est_rows):
         return None
-    pending, more = repository.pending_batches(session, stream, max_samples=max_samples, max_batches=max_batches)
-    if not pending:
+    taken, more = repository.take_pending(
+        stream, loaded.candidates.get(actuator_pk, []), max_samples=max_samples, max_batches=max_batches
+    )
+    if not taken:
         return None
-    pending = _at_baseline_boundary(stream, est_rows, pending)
+    pending = _at_baseline_boundary(stream, est_rows, taken)
     runners = [
         make_runner(er.estimator, er.config, er.state, er.status, er.reasons, er.diagnosis_t_s, er.diagnosis)
         for er in est_rows
     ]
-    batches = [decode(b, recent) for b in pending]
+    batches = _decode_pending(session, pending, recent)
     step = run_estimators(actuator_pk, runners, batches, store_outputs=store_outputs)
 
     now = utcnow()
     _label(step.rows, est_rows)
     repository.insert_rows(session, step.rows)
-    for row in pending:
-        row.applied_at = now
+    repository.mark_batches_applied(session, actuator_pk, pending[0].seq, pending[-1].seq, now)
     for er, runner in zip(est_rows, step.runners, strict=True):
         er.state = runner.kind.dump_state(runner.state)
         er.applied_seq = pending[-1].seq
@@ -186,7 +239,7 @@ def apply_pending(
         applied=step.results,
         status_before=status_before,
         status_after=stream.status,
-        more=more,
+        more=more or len(pending) < len(taken),  # the rest starts a new baseline
     )
     events.record_apply(session, result)  # the fleet event log and alarms, in this transaction
     return result

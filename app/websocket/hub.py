@@ -58,6 +58,13 @@ class Subscription:
     wakeup: asyncio.Event = field(default_factory=asyncio.Event)
     # Only wake the subscriber up (it reads what happened from the durable event log).
     wake_only: bool = False
+    # Results of the stream were committed where they could not be pushed from (another
+    # process): the subscriber reads them back from the store.
+    stale: bool = False
+
+    def _mark_stale(self) -> None:  # runs in the subscriber's loop
+        self.stale = True
+        self.wakeup.set()
 
     def _offer(self, item: Any) -> None:  # runs in the subscriber's loop
         if self.wake_only:
@@ -160,7 +167,7 @@ class Hub:
             subs = list(self._streams.get(actuator_pk, ()))
         for sub in subs:
             with contextlib.suppress(RuntimeError):
-                sub.loop.call_soon_threadsafe(sub.wakeup.set)
+                sub.loop.call_soon_threadsafe(sub._mark_stale)
 
     # ------------------------------------------------------------------ subscriptions
     def subscribe_stream(self, actuator_pk: int, maxsize: int) -> Subscription:

@@ -40,7 +40,8 @@ from app.events.service import LOGGED_TYPES
 from app.ingest import UnsupportedFrame
 from app.processing.processor import Processor
 from app.telemetry import service as telemetry
-from app.telemetry.validation import BatchLimits
+from app.telemetry.validation import DEFAULT_LIMITS, BatchLimits
+from app.telemetry.writer import LogWriter
 from app.websocket import service
 from app.websocket.hub import ALL_FLEET_TYPES, DEFAULT_FLEET_TYPES, Hub, Subscription, public
 
@@ -52,6 +53,8 @@ WS_FRAMES = Counter("fleethealth_ws_frames_total", "Streamed frames by outcome",
 WS_DROPPED = Counter("fleethealth_ws_subscribers_dropped_total", "Fleet subscribers dropped as too slow")
 WS_FLOW = Counter("fleethealth_ws_flow_total", "slow_down and resume messages sent to stream clients", ["message"])
 WS_QUEUED = Gauge("fleethealth_ws_queued_frames", "Frames read from stream connections, not logged yet")
+# Bound once: ``labels()`` per frame costs a lock and a dict look-up.
+FRAMES_LOGGED = WS_FRAMES.labels("logged")
 WS_KEY_CLOSES = Counter(
     "fleethealth_ws_key_closes_total", "WebSockets closed because their key was revoked or lost its scope", ["error"]
 )
@@ -109,28 +112,42 @@ async def _authenticate(ws: WebSocket, db: Database, settings: Settings, scope: 
     return principal
 
 
+def _key_checks(ws: WebSocket, db: Database, settings: Settings) -> service.KeyChecks:
+    checks: service.KeyChecks | None = getattr(ws.app.state, "ws_key_checks", None)
+    if checks is None:
+        checks = ws.app.state.ws_key_checks = service.KeyChecks(db, settings.ws_auth_recheck_s / 2)
+    return checks
+
+
 async def _guard_key(
     ws: WebSocket, db: Database, settings: Settings, principal: Principal, scope: str, lock: asyncio.Lock
 ) -> None:
-    """Re-read the connection's key every ``ws_auth_recheck_s``; once it is revoked or lacks
-    ``scope``, close with 1008 and return. Reading the database (not an in-process notice)
-    makes a revocation by any process, or by the CLI, count."""
+    """Re-check the connection's key every half ``ws_auth_recheck_s``; once it is revoked or
+    lacks ``scope``, close with 1008 and return. Reading the database (not an in-process
+    notice) makes a revocation by any process, or by the CLI, count. The connections of one
+    key share each reading (:class:`~app.websocket.service.KeyChecks`: at most one read per
+    key and scope per half interval, however many connections use it), so a revocation is seen
+    within ``ws_auth_recheck_s``."""
+    checks = _key_checks(ws, db, settings)
     while True:
-        await asyncio.sleep(settings.ws_auth_recheck_s)
+        await asyncio.sleep(settings.ws_auth_recheck_s / 2)
         try:
-            await run_in_threadpool(service.recheck_key, db, principal, scope)
-        except DomainError as exc:
-            WS_KEY_CLOSES.labels(exc.name).inc()
+            refusal = checks.cached(principal, scope)
+            if refusal is service.STALE:
+                refusal = await run_in_threadpool(checks.read, principal, scope)
+        except SQLAlchemyError as exc:  # the database is unreachable now: check again later
+            log.warning("could not re-check the key of an open WebSocket: %s", type(exc).__name__)
+            continue
+        if isinstance(refusal, DomainError):
+            WS_KEY_CLOSES.labels(refusal.name).inc()
 
-            async def close(err: DomainError = exc) -> None:
+            async def close(err: DomainError = refusal) -> None:
                 async with lock:  # never in the middle of another message
                     await _refuse(ws, CLOSE_POLICY, err.name, err.detail)
 
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(close(), settings.ws_close_timeout_s)
             return
-        except SQLAlchemyError as exc:  # the database is unreachable now: check again later
-            log.warning("could not re-check the key of an open WebSocket: %s", type(exc).__name__)
 
 
 # ----------------------------------------------------------------------------- ingest stream
@@ -201,6 +218,7 @@ class _StreamConn:
     channels: list[str]
     with_samples: bool
     sub: Subscription
+    writer: LogWriter
     lock: asyncio.Lock = field(default_factory=asyncio.Lock)
     inflight: OrderedDict[int, int | None] = field(default_factory=OrderedDict)  # seq -> client_seq
     ready: dict[int, dict[str, Any]] = field(default_factory=dict)  # seq -> result message
@@ -214,16 +232,28 @@ class _StreamConn:
     space_free: asyncio.Event = field(default_factory=asyncio.Event)
     paused: bool = False  # slow_down sent, resume not yet
     results_rate: RateMeter = field(default_factory=lambda: RateMeter())
+    sent_seq: int = 0  # the last result sent (older pushes are stale)
+    limits: BatchLimits = DEFAULT_LIMITS
+    read_back_at: float = field(default_factory=time.monotonic)  # of the last read-back
 
     # ------------------------------------------------------------------ results
     def _take_pushed(self) -> None:
+        """Keep the results pushed for this stream. One may come before its frame is in
+        ``inflight``: the processor can apply a frame between its commit to the log and the
+        moment this connection reads the acknowledgement. It is kept (not read back from the
+        store later), so are results of frames of another connection to the same actuator;
+        those never become in flight, so only the newest few are kept."""
         while True:
             try:
                 ab = self.sub.queue.get_nowait()
             except asyncio.QueueEmpty:
                 break
-            if ab.seq in self.inflight and ab.seq not in self.ready:
+            if ab.seq > self.sent_seq and ab.seq not in self.ready:
                 self.ready[ab.seq] = ab.message(with_samples=self.with_samples)
+        spare = len(self.ready) - len(self.inflight) - self.sub.queue.maxsize
+        if spare > 0:
+            for seq in sorted(q for q in self.ready if q not in self.inflight)[:spare]:
+                del self.ready[seq]
 
     async def _read_back(self) -> None:
         """Results of in-flight batches already applied but not pushed here (applied by another
@@ -235,6 +265,21 @@ class _StreamConn:
         for msg in messages:
             self.ready[msg["seq"]] = msg
         self.failure = failure
+
+    def _should_read_back(self, head: int, now: float) -> bool:
+        """Whether the head's result may be in the store without having been pushed here:
+        pushes were lost (queue overflow), another process applied the stream (its
+        notification), or this process knows the head is applied. Otherwise the connection waits for the push, and reads back only every
+        ``10 * ws_result_poll_s`` (a notification lost without a reconnect of the listener):
+        a thousand connections waiting for a busy processor do not each read the store every
+        poll."""
+        if self.sub.overflowed or self.sub.stale:
+            self.sub.overflowed = self.sub.stale = False
+            return True
+        known = self.processor.known_applied(self.actuator_pk)
+        if known is not None and known >= head:
+            return True
+        return now - self.read_back_at >= 10 * self.settings.ws_result_poll_s
 
     async def push_results(self) -> None:
         poll = self.settings.ws_result_poll_s
@@ -248,9 +293,9 @@ class _StreamConn:
             self.sub.wakeup.clear()
             self._take_pushed()
             head = next(iter(self.inflight))
-            if head not in self.ready:
-                if self.sub.overflowed:
-                    self.sub.overflowed = False  # pushes were lost: read them back
+            now = time.monotonic()
+            if head not in self.ready and self._should_read_back(head, now):
+                self.read_back_at = now
                 await self._read_back()
             while self.inflight:
                 head = next(iter(self.inflight))
@@ -258,6 +303,7 @@ class _StreamConn:
                 if msg is None:
                     break
                 self.inflight.pop(head)
+                self.sent_seq = head
                 await _send(self.ws, self.lock, msg)
                 self.results_rate.tick()
                 self.window_free.set()
@@ -351,8 +397,7 @@ class _StreamConn:
         """Log one frame and acknowledge it; False when it was refused (connection closed)."""
         try:
             client_seq, ack = await telemetry.ingest_frame(
-                self.ws.app.state.log_writer, self.actuator_pk, self.channels, data,
-                self.settings.max_batch_samples, BatchLimits.from_settings(self.settings),
+                self.writer, self.actuator_pk, self.channels, data, self.settings.max_batch_samples, self.limits
             )
         except UnsupportedFrame as exc:
             WS_FRAMES.labels("unsupported").inc()
@@ -379,9 +424,11 @@ class _StreamConn:
             WS_FRAMES.labels("duplicate").inc()
             await _send(self.ws, self.lock, {"type": "duplicate", "client_seq": client_seq, "seq": ack.seq})
             return True
-        WS_FRAMES.labels("logged").inc()
+        FRAMES_LOGGED.inc()
         self.inflight[ack.seq] = client_seq
         self.inflight_added.set()
+        if ack.seq in self.ready:  # applied and pushed before this acknowledgement was read
+            self.sub.wakeup.set()
         self.processor.notify(self.actuator_pk)
         await _send(
             self.ws,
@@ -426,6 +473,9 @@ async def stream(ws: WebSocket, tail: str, actuator_id: str) -> None:
         with_samples=ws.query_params.get("samples", "false").lower() in ("1", "true", "yes"),
         sub=sub,
         budget=_frame_budget(ws, settings),
+        sent_seq=start.last_applied_seq,
+        writer=ws.app.state.log_writer,
+        limits=BatchLimits.from_settings(settings),
     )
     # Frames logged before a dropped connection and not applied yet: their results come here.
     for seq, client_seq in start.pending:

@@ -279,7 +279,7 @@ def smoother_weights(box: int, dt: float, max_order: int) -> FloatArray:
 
 
 # ----------------------------------------------------------------------------- fuzzy factor
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def fuzzy_alpha(x: float, lv: FloatArray, out: FloatArray) -> float:
     """Adaptive factor of the fuzzy system (seed eqs. 43-44, Table 2).
 
@@ -313,7 +313,7 @@ def fuzzy_alpha(x: float, lv: FloatArray, out: FloatArray) -> float:
 
 
 # ----------------------------------------------------------------------------- subsystem filter
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _phi1(x: float) -> tuple[float, float]:
     """``phi1(x) = (e^x - 1) / x`` and its derivative, with series near 0."""
     if abs(x) < 1.0e-3:
@@ -339,7 +339,7 @@ WV_ROWS = 9
 WV_LEN = max(MAX_DIM, N_CHAN)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _monomial(coef: float, exps: FloatArray, z: FloatArray, first: int, n_par: int) -> float:
     """``coef * prod_p z[first + p] ** exps[p]`` (integer exponents +-1 without a power)."""
     m = coef
@@ -354,7 +354,7 @@ def _monomial(coef: float, exps: FloatArray, z: FloatArray, first: int, n_par: i
     return m
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def subsystem_model(
     n_par: int,
     kinds: IntArray,
@@ -429,7 +429,7 @@ def subsystem_model(
     return float((e_x * y + dt * phi * big_b) / scale)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _symmetrize(m: FloatArray, d: int) -> None:
     for i in range(d):
         for j in range(i + 1, d):
@@ -438,7 +438,7 @@ def _symmetrize(m: FloatArray, d: int) -> None:
             m[j, i] = s
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _update(
     sc: FloatArray,
     ss: FloatArray,
@@ -526,7 +526,7 @@ def _update(
     ss[SS_N_UPDATES] += 1.0
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def relation_step(
     sc: FloatArray,
     kinds: IntArray,
@@ -574,7 +574,7 @@ def relation_step(
             ss[SS_P + i * MAX_DIM + j] = pp[i, j]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def subsystem_step(
     sc: FloatArray,
     kinds: IntArray,
@@ -658,7 +658,7 @@ def subsystem_step(
             ss[SS_P + i * MAX_DIM + j] = pp[i, j]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def subsystem_start(
     sc: FloatArray, ss: FloatArray, y0: float, t: float, r_var: float, r_sample: float
 ) -> None:
@@ -697,7 +697,7 @@ def subsystem_start(
 
 
 # ----------------------------------------------------------------------------- batch loop
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _push(rows: FloatArray, n_rows: int) -> FloatArray:
     """``rows`` with room for one more row (doubling the capacity when full)."""
     if n_rows < rows.shape[0]:
@@ -707,7 +707,7 @@ def _push(rows: FloatArray, n_rows: int) -> FloatArray:
     return bigger
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _quantile(values: FloatArray, q: float) -> float:
     """Linear-interpolation quantile (numpy's default) of a non-empty array."""
     s = np.sort(values)
@@ -717,7 +717,7 @@ def _quantile(values: FloatArray, q: float) -> float:
     return float(s[lo] + (s[hi] - s[lo]) * (pos - lo))
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _median(values: FloatArray) -> float:
     """Median of a non-empty array (mean of the two middle values for an even count)."""
     s = np.sort(values)
@@ -727,7 +727,7 @@ def _median(values: FloatArray) -> float:
     return float(0.5 * (s[n // 2 - 1] + s[n // 2]))
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _finish_calibration(
     cfg: FloatArray,
     st: FloatArray,
@@ -871,7 +871,7 @@ def _finish_calibration(
     row[EV_CAL_FLAGS] = flags
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _window_sum(ring: FloatArray, newest: int, count: int, n: int) -> float:
     """Sum of the ``count`` newest values of a ring buffer of length ``n``."""
     first = newest - count + 1
@@ -887,7 +887,7 @@ def _window_sum(ring: FloatArray, newest: int, count: int, n: int) -> float:
     return acc
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _push_samples(
     hist: FloatArray,
     sums: FloatArray,
@@ -917,7 +917,7 @@ def _push_samples(
             y[c] = sums[c, j] * inv_box
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _derivatives(
     hist: FloatArray,
     c: int,
@@ -939,7 +939,7 @@ def _derivatives(
         out[o] = acc * inv_h[o]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def darr_batch(
     cfg: FloatArray,
     w0: FloatArray,
@@ -1449,7 +1449,7 @@ def darr_batch(
     return events[:n_ev].copy(), windows[:n_wo].copy(), 0
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def close_health_window(st: FloatArray, t_end: float, row: FloatArray) -> None:
     """Write the open health window's row (``WIN_*``) ending at ``t_end`` and start a new one
     (the per-sample loop when a window is full; ``darr_fekf.step`` for the partial window of a
@@ -1466,13 +1466,13 @@ def close_health_window(st: FloatArray, t_end: float, row: FloatArray) -> None:
     st[ST_WIN_COUNT] = 0.0
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _first_param(sc: FloatArray) -> int:
     """Index of the first parameter in a subsystem's state vector (after the state, if any)."""
     return 0 if sc[SC_RELATION] == 1.0 else 1
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _mask(st: FloatArray) -> float:
     """The latched coherence vector as a bit mask (bit l: residual l + 1)."""
     m = 0.0
@@ -1482,6 +1482,6 @@ def _mask(st: FloatArray) -> float:
     return m
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _or_mask(a: float, b: float) -> float:
     return float(int(a) | int(b))

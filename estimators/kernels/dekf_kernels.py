@@ -257,7 +257,7 @@ MAX_SUB = 256  # sub-segments per load segment in the prognosis
 
 
 # ----------------------------------------------------------------------------- model
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def taylor_order(theta: float, tol: float) -> int:
     """Smallest N >= 2 with theta^(N+1) / (N+2)! <= tol (remainder bound of phi1 to order N)."""
     term = theta * theta * theta / 24.0  # N = 2: theta^3 / 4!
@@ -268,7 +268,7 @@ def taylor_order(theta: float, tol: float) -> int:
     return order
 
 
-@njit(cache=True, error_model="numpy", fastmath=FMA)
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=FMA)
 def discretize(
     cfg: FloatArray, w1: float, w2: float, al: float, m: float, u: float, dt: float
 ) -> tuple[
@@ -532,7 +532,7 @@ def edge_moments(
 
 
 # ----------------------------------------------------------------------------- filter
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _grow(rows: FloatArray, used: int) -> FloatArray:
     """A copy of ``rows`` with twice the capacity (first ``used`` rows kept)."""
     bigger = np.empty((2 * rows.shape[0] + 4, rows.shape[1]))
@@ -540,7 +540,7 @@ def _grow(rows: FloatArray, used: int) -> FloatArray:
     return bigger
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _dn_target(dn: float, watch: float, alert: float) -> int:
     if dn >= alert:
         return 2
@@ -548,7 +548,7 @@ def _dn_target(dn: float, watch: float, alert: float) -> int:
         return 1
     return 0
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _pcal_accumulate(
     cfg: FloatArray, st: FloatArray, tk: float, y1: float, y2: float, ik: float, t_centre: float
 ) -> None:
@@ -669,7 +669,7 @@ def ekf_batch(
     return np.hstack(outs), np.vstack(wins), np.vstack(evs), np.vstack(snaps), 0
 
 
-@njit(cache=True, error_model="numpy", fastmath=FMA)
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=FMA)
 def _ekf_kernel(
     cfg: FloatArray,
     st: FloatArray,
@@ -1516,7 +1516,7 @@ def _ekf_kernel(
 
 
 # ----------------------------------------------------------------------------- prognosis
-@njit(cache=True, error_model="numpy", fastmath=FMA)
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=FMA)
 def segment(
     plant: FloatArray, w1: float, w2: float, al: float, u: float, tau: float
 ) -> tuple[float, float, float]:
@@ -1589,7 +1589,7 @@ def segment(
     return w1e, w2e, max(integral, 0.0)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def periodic_steady_state(
     plant: FloatArray, seg_dur: FloatArray, seg_cur: FloatArray, al: float
 ) -> tuple[float, float, float, float, float, float]:
@@ -1613,7 +1613,7 @@ def periodic_steady_state(
     return w1, w2, m00, m01, m10, m11
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _solve_i_minus(
     m00: float, m01: float, m10: float, m11: float, b1: float, b2: float
 ) -> tuple[float, float]:
@@ -1624,7 +1624,7 @@ def _solve_i_minus(
     return (a11 * b1 + m01 * b2) / det, (a00 * b2 + m10 * b1) / det
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _crossing_time(
     plant: FloatArray, w1: float, w2: float, al: float, u: float, tau: float, target: float
 ) -> float:
@@ -1641,7 +1641,7 @@ def _crossing_time(
     return hi
 
 
-@njit(cache=True, error_model="numpy", fastmath=FMA)
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=FMA)
 def one_period(
     plant: FloatArray,
     seg_dur: FloatArray,
@@ -1713,7 +1713,7 @@ def one_period(
     return w1, w2, ell, np.nan
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def drifting_probe(
     plant: FloatArray,
     seg_dur: FloatArray,
@@ -1742,7 +1742,7 @@ def drifting_probe(
     return ell_a, ell_b - ell_a, lag1, lag2
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _quadratic(
     x0: float, y0: float, x1: float, y1: float, x2: float, y2: float, x: float
 ) -> tuple[float, float]:
@@ -1763,7 +1763,7 @@ def _quadratic(
     return value, slope
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _periods_per_ell(
     xp: float, dp: float, xm: float, dm: float, xe: float, de: float, x: float
 ) -> float:
@@ -1774,7 +1774,7 @@ def _periods_per_ell(
     return 1.0 / abs(delta * (1.0 - 0.5 * slope))
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def time_to_failure(
     plant: FloatArray,
     seg_dur: FloatArray,
@@ -1856,7 +1856,7 @@ def time_to_failure(
     return np.nan
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def rul_times(
     plant: FloatArray,
     seg_dur: FloatArray,

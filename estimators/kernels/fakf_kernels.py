@@ -190,7 +190,7 @@ NIS_HI = 5.023886187314888
 
 
 # ----------------------------------------------------------------------------- least squares
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def acc_add_row(
     acc: FloatArray,
     v1: float,
@@ -229,7 +229,7 @@ def acc_add_row(
     acc[22] += 1.0
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def acc_accumulate(acc: FloatArray, current: FloatArray, voltage: FloatArray) -> None:
     """Accumulate the rows k = 2..n-1 of two whole arrays into ``acc`` (rows with a NaN skipped)."""
     for k in range(2, current.shape[0]):
@@ -250,7 +250,7 @@ def acc_accumulate(acc: FloatArray, current: FloatArray, voltage: FloatArray) ->
             acc_add_row(acc, v1, v2, i0, i1, i2, y)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def max_pole_modulus(a0: float, a1: float) -> float:
     """Largest |z| with z^2 + a0 z + a1 = 0 (poles of 1 / (1 + a0 z^-1 + a1 z^-2))."""
     disc = a0 * a0 - 4.0 * a1
@@ -260,7 +260,7 @@ def max_pole_modulus(a0: float, a1: float) -> float:
     return math.sqrt(a1)  # complex pair: |z|^2 = a1
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def acc_solve(
     acc: FloatArray, cond_limit: float, min_current_std: float, min_rows: float
 ) -> FloatArray:
@@ -339,7 +339,7 @@ def acc_solve(
     return out
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def residual_rms(acc: FloatArray, theta: FloatArray) -> float:
     """RMS of the one-step residual ``V_k - phi_k^T theta`` over the rows of an accumulator
     block, from its sums alone: ``SSE = y'y - 2 theta'b + theta' G theta`` (NaN without rows)."""
@@ -354,7 +354,7 @@ def residual_rms(acc: FloatArray, theta: FloatArray) -> float:
     return math.sqrt(max(sse, 0.0) / n)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def prediction_drift(acc: FloatArray, theta_w: FloatArray, theta_b: FloatArray) -> float:
     """RMS difference of two models' one-step predictions over a window, relative to the RMS of
     the window's voltage: ``sqrt(d' G d / n) / sqrt(y'y / n)``, ``d = theta_w - theta_b``.
@@ -374,13 +374,13 @@ def prediction_drift(acc: FloatArray, theta_w: FloatArray, theta_b: FloatArray) 
 
 
 # ----------------------------------------------------------------------------- filter
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _same(x: float, y: float) -> bool:
     """Bitwise equality of two floats that are not NaN (``==`` plus the sign of zero)."""
     return x == y and math.copysign(1.0, x) == math.copysign(1.0, y)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _start_model(st: FloatArray, theta: FloatArray, q: float, r: float, p0: float) -> None:
     """Make a model available: coefficients, noise levels, x and model-only history from the
     last two measured voltages (0 where missing), P = p0 I."""
@@ -404,7 +404,7 @@ def _start_model(st: FloatArray, theta: FloatArray, q: float, r: float, p0: floa
     st[ST_RESTART] = 0.0 if math.isfinite(st[ST_V_LAG]) else 1.0
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _clamp(v: float, lo: float, hi: float) -> float:
     """``v`` limited to the rails ``[lo, hi]``; a NaN rail is no limit (comparisons with NaN are
     false), so without rails this returns ``v`` bit for bit."""
@@ -415,7 +415,7 @@ def _clamp(v: float, lo: float, hi: float) -> float:
     return v
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def static_gain(theta: FloatArray) -> float:
     """DC gain of eq. 15, ``(b0 + b1 + b2) / (1 + a0 + a1)`` (V/A): V(z)/I(z) at z = 1."""
     den = 1.0 + theta[0] + theta[1]
@@ -425,7 +425,7 @@ def static_gain(theta: FloatArray) -> float:
     return gain
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def dominant_pole(a0: float, a1: float) -> float:
     """The pole of ``1 + a0 z^-1 + a1 z^-2`` of largest modulus: its signed value when the poles
     are real, the common modulus ``sqrt(a1)`` when they are a complex pair."""
@@ -438,7 +438,7 @@ def dominant_pole(a0: float, a1: float) -> float:
     return math.sqrt(a1)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _reset_window(st: FloatArray) -> None:
     for i in range(ST_W_COUNT, ST_W_N_MODEL + 1):
         st[i] = 0.0
@@ -450,7 +450,7 @@ def _reset_window(st: FloatArray) -> None:
     st[ST_W_N_CENSORED] = 0.0
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _close_window(
     st: FloatArray,
     cfg: FloatArray,
@@ -575,7 +575,7 @@ def _close_window(
     return has_event
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _reference_step(
     st: FloatArray, ih: float, ih1: float, ih2: float, z: float, lo: float, hi: float
 ) -> tuple[float, float]:
@@ -665,7 +665,7 @@ def fakf_batch(
     return out[0], out[1], out[2], out[3], windows, events, status
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _fakf_kernel(
     cfg: FloatArray,
     st: FloatArray,

@@ -250,7 +250,7 @@ def state_layout(nh: int, na: int, p: int, m: int, s: int) -> Layout:
 
 
 # ----------------------------------------------------------------------------- linear algebra
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def lu_nopivot(a: FloatArray, k: int) -> bool:
     """In-place Doolittle LU of the leading ``k x k`` block (unit lower L below the diagonal,
     U on and above). Returns False when a pivot is not positive: for a symmetric matrix this is
@@ -272,7 +272,7 @@ def lu_nopivot(a: FloatArray, k: int) -> bool:
     return True
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def lu_solve(lu: FloatArray, k: int, b: FloatArray, out: FloatArray) -> None:
     """Solve ``S z = b`` from :func:`lu_nopivot` factors (first ``k`` entries)."""
     for i in range(k):
@@ -287,7 +287,7 @@ def lu_solve(lu: FloatArray, k: int, b: FloatArray, out: FloatArray) -> None:
         out[i] = s / lu[i, i]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def gaussian_loglik(gam: FloatArray, s: FloatArray, k: int, work: FloatArray) -> float:
     """Log of the multivariate Gaussian density of innovation ``gam`` with covariance ``s``
     (leading ``k`` entries; ``s`` is overwritten by its LU factors); -inf when ``s`` is not
@@ -303,7 +303,7 @@ def gaussian_loglik(gam: FloatArray, s: FloatArray, k: int, work: FloatArray) ->
     return -0.5 * (quad + logdet + k * LOG_2PI)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def euclidean_loglik(gam: FloatArray, s_diag: FloatArray, w: FloatArray, k: int) -> float:
     """Log-likelihood from the Euclidean norm of the innovation in units of the sensor noise:
     ``e^2 = sum_j w_j gam_j^2``, ``sigma^2 = sum_j w_j S_jj`` (its expectation), and the 1-D
@@ -319,7 +319,7 @@ def euclidean_loglik(gam: FloatArray, s_diag: FloatArray, w: FloatArray, k: int)
 
 
 # ----------------------------------------------------------------------------- one filter
-@njit(cache=True, error_model="numpy", fastmath=FAST)
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=FAST)
 def filter_step(
     f: int,
     bank: BankArrays,
@@ -540,7 +540,7 @@ def filter_step(
     return 0
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _accept_prior(f: int, xs: FloatArray, ps: FloatArray, xp: FloatArray, pp: FloatArray) -> None:
     """No update: the posterior is the prior."""
     na = xs.shape[1]
@@ -551,7 +551,7 @@ def _accept_prior(f: int, xs: FloatArray, ps: FloatArray, xp: FloatArray, pp: Fl
 
 
 # ----------------------------------------------------------------------------- bank
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _bayes(probs: FloatArray, ll: FloatArray, floors: FloatArray) -> None:
     """``p_i <- p_i f_i / sum_j p_j f_j`` in the log domain, then the floor and renormalization.
     Hypotheses whose likelihood is not finite get zero weight (then the floor); if none is
@@ -584,7 +584,7 @@ def _bayes(probs: FloatArray, ll: FloatArray, floors: FloatArray) -> None:
         probs[i] /= total2
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _episode_add(dec: FloatArray, h: int, value: float, var: float) -> None:
     """Add one deflection estimate ``value`` of posterior variance ``var`` with weight
     ``1 / var`` (samples where the fading factor has just inflated the deflection's covariance,
@@ -597,14 +597,14 @@ def _episode_add(dec: FloatArray, h: int, value: float, var: float) -> None:
     dec[h, D_EP_N] += w
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def episode_mean(dec: FloatArray, h: int) -> float:
     """Precision-weighted mean deflection estimate over the episode's span (NaN if empty)."""
     n = dec[h, D_EP_N]
     return dec[h, D_EP_SUM] / n if n > 0.0 else np.nan
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def episode_swing(dec: FloatArray, h: int) -> float:
     """Twice the precision-weighted standard deviation of the deflection estimate over the
     episode's span (0 if empty): the peak-to-peak swing of a square wave, 0.71 times that of a
@@ -616,7 +616,7 @@ def episode_swing(dec: FloatArray, h: int) -> float:
     return 2.0 * math.sqrt(max(dec[h, D_EP_SUMSQ] / n - mean * mean, 0.0))
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _write_event(
     events: FloatArray, n_ev: int, t: float, kind: float, dec: FloatArray, h: int
 ) -> FloatArray:
@@ -640,7 +640,7 @@ def _write_event(
     return events
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _kind_add(
     dec: FloatArray, kbuf: FloatArray, h: int, t: float, value: float, var: float
 ) -> None:
@@ -663,7 +663,7 @@ def _kind_add(
     dec[h, D_BLK_N] += 1.0
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def kind_correlation(x: FloatArray, nb: int) -> float:
     """Smallest normalized autocorrelation of the first ``nb`` block means ``x`` over lags from
     ``KIND_MIN_LAG_S`` to half the history:
@@ -699,7 +699,7 @@ def kind_correlation(x: FloatArray, nb: int) -> float:
     return best
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _judge_kind(cfg: FloatArray, dec: FloatArray, kbuf: FloatArray, h: int) -> None:
     """Close the kind span: oscillating when the block history's autocorrelation has a negative
     lobe below ``CFG_OSC_CORR`` and its swing exceeds ``CFG_OSC_SWING``; stuck otherwise; left
@@ -720,7 +720,7 @@ def _judge_kind(cfg: FloatArray, dec: FloatArray, kbuf: FloatArray, h: int) -> N
     dec[h, D_KIND] = KIND_OSCILLATING if osc else KIND_STUCK
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _start_run(dec: FloatArray, h: int, t: float) -> None:
     """A new run of the detection conditions starts at ``t``: reset its evidence and kind span."""
     dec[h, D_ABOVE_T] = t
@@ -736,7 +736,7 @@ def _start_run(dec: FloatArray, h: int, t: float) -> None:
     dec[h, D_KIND_CORR] = np.nan
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _decide(
     cfg: FloatArray,
     dec: FloatArray,
@@ -825,7 +825,7 @@ def _decide(
     return code
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _relevant_loglik(
     bank: BankArrays,
     dec: FloatArray,
@@ -874,7 +874,7 @@ def _relevant_loglik(
                 rel_in[new_g] = ll[f]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def reset_after_clearance(dec: FloatArray, h: int) -> None:
     """Back to "no fault" after a clearance event was written."""
     dec[h, D_ACTIVE] = 0.0
@@ -891,7 +891,7 @@ def reset_after_clearance(dec: FloatArray, h: int) -> None:
     dec[h, D_KIND_CORR] = np.nan
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _close_window(wacc: FloatArray, t_end: float, row: FloatArray) -> None:
     row[:] = np.nan
     n = wacc[W_COUNT]
@@ -943,7 +943,7 @@ def bank_batch(
     return samples, windows, events, status
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _unpack(
     st: FloatArray, nh: int, na: int, p: int
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
@@ -967,7 +967,7 @@ def _unpack(
     return xs, ps, vs, vflags
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _pack(
     st: FloatArray, xs: FloatArray, ps: FloatArray, vs: FloatArray, vflags: FloatArray
 ) -> None:
@@ -988,7 +988,7 @@ def _pack(
         st[voff + p * p] = vflags[f]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _bank_kernel(
     cfg: FloatArray,
     bank: BankArrays,
