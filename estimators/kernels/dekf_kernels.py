@@ -459,7 +459,7 @@ def discretize(
 EDGE_MAX_TERMS = 48  # series terms of the edge-response moments (theta up to about 12)
 
 
-@njit(cache=True, error_model="numpy", fastmath=FMA)
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=FMA)
 def edge_moments(
     cfg: FloatArray, w1: float, w2: float, al: float, m: float, dt: float
 ) -> tuple[float, float, float, float, float, float, float, float, float]:
