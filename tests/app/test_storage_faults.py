@@ -137,6 +137,10 @@ class TcpProxy:
 
     def cut(self) -> None:
         if self._listener is not None:
+            # close() alone leaves the accept thread blocked on the listening socket, which then
+            # still accepts connections (Linux); shutdown() wakes it and stops accepting.
+            with contextlib.suppress(OSError):
+                self._listener.shutdown(socket.SHUT_RDWR)
             self._listener.close()
             self._listener = None
         with self._lock:
