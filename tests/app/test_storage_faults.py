@@ -93,7 +93,8 @@ def test_sqlite_disk_full_is_503_and_recovers_without_restart(small_disk: Path) 
         api = Api(client)
         api.setup_actuator()
         assert _batch(api, "b1", 0.0).status_code == 202
-        assert client.get("/readyz").status_code == 200
+        # Ready once every kind's kernels are (a cold numba cache compiles them meanwhile).
+        _wait_until(lambda: client.get("/readyz").status_code == 200, timeout_s=300.0)
         _fill(small_disk / "filler")
         r = client.get("/readyz")
         assert r.status_code == 503 and r.json()["checks"]["storage"].startswith("disk full"), r.text
