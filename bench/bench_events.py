@@ -15,6 +15,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import asyncio
 import statistics
 import tempfile
 import time
@@ -30,11 +31,13 @@ from app.db import Database
 from app.events import service as events
 from app.fleet import service as fleet
 from app.ingest import TimeParams
-from app.main import warm_kernels
+from app.kernels import warm_kind
 from app.migrate import upgrade
 from app.processing import service as processing
 from app.telemetry import service as telemetry
+from app.telemetry.body import RequestBody
 from app.telemetry.validation import BatchLimits
+from app.telemetry.writer import LogWriter
 
 FAKF = {"fakf": {"identification_samples": 200, "health_window_samples": 250}}
 
@@ -59,11 +62,21 @@ def run(url: str, streams: int, hook: bool) -> tuple[list[float], list[float]]:
             pks.append((act.id, act.actuator_id))
     n = 800
     t = np.arange(n) * 0.001
-    for _, act_id in pks:
-        for i in range(2):
-            body = _json(f"b{i}", t + i, np.ones(n), np.ones(n))
-            params = TimeParams(None, None, None)
-            telemetry.ingest_body(db, op_id, tail, act_id, body, "application/json", params, settings.max_batch_samples, limits)
+    writer = LogWriter(db)
+    writer.start()
+    lookup = telemetry.ActuatorLookup(db, 0.0, 1)
+
+    async def log(act_id: str, data: bytes) -> None:
+        body = RequestBody(bytearray(data), None, len(data))
+        await telemetry.ingest_body(writer, lookup, op_id, tail, act_id, body, "application/json",
+                                    TimeParams(None, None, None), settings.max_batch_samples, limits)
+
+    try:
+        for _, act_id in pks:
+            for i in range(2):
+                asyncio.run(log(act_id, _json(f"b{i}", t + i, np.ones(n), np.ones(n))))
+    finally:
+        writer.stop()
     original = events.record_apply
     if not hook:
         events.record_apply = lambda session, result: []
@@ -91,7 +104,7 @@ def main() -> None:
     ap.add_argument("--streams", type=int, default=40)
     ap.add_argument("--pg", default=None)
     args = ap.parse_args()
-    warm_kernels()
+    warm_kind("fakf")
     if args.pg:
         schema = "b_" + uuid.uuid4().hex[:10]
         admin = create_engine(args.pg)
