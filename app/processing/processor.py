@@ -307,8 +307,8 @@ class Processor:
                 if self.applied_channel is not None:
                     for res in results:
                         self._announce(s, res)
-        except _StreamFailed:  # the one stream's error: its transaction is rolled back
-            pass
+        except _StreamFailed:  # the one stream's error (in errors): its transaction is rolled back
+            results.clear()
         except Exception as commit_exc:  # the commit failed: no stream of the group was applied
             for pk in pks:
                 self._attempt_failed(pk, commit_exc)

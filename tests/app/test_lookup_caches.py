@@ -76,16 +76,21 @@ def api_clocked(db_url: str) -> Iterator[tuple[Api, FakeClock]]:
         yield Api(client), clock
 
 
-def test_a_key_revoked_elsewhere_stops_working_within_the_ttl(api_clocked: tuple[Api, FakeClock], db_url: str) -> None:
-    api, clock = api_clocked
-    api.setup_actuator()
+def _key_of_another_process(db_url: str) -> tuple[Database, int, dict[str, str]]:
+    """An ingest+read key made through a second connection pool, as another process would."""
     other_process = Database(db_url)
     with other_process.write() as s:
         row, key = create_key(s, "default", ["ingest", "read"], name="stand")
-    as_key = {"Authorization": f"Bearer {key}"}
+    return other_process, row.id, {"Authorization": f"Bearer {key}"}
+
+
+def test_a_key_revoked_elsewhere_stops_working_within_the_ttl(api_clocked: tuple[Api, FakeClock], db_url: str) -> None:
+    api, clock = api_clocked
+    api.setup_actuator()
+    other_process, row_id, as_key = _key_of_another_process(db_url)
     assert api.c.get("/v1/aircraft", headers=as_key).status_code == 200
     with other_process.write() as s:
-        assert revoke_key(s, row.id)
+        assert revoke_key(s, row_id)
     other_process.dispose()
     # Remembered at most TTL_S: past it the key is read again and refused.
     clock.now += TTL_S + 0.01
@@ -99,14 +104,11 @@ def test_a_key_revoked_elsewhere_stops_working_within_the_ttl(api_clocked: tuple
 def test_a_scope_removed_elsewhere_is_refused_within_the_ttl(api_clocked: tuple[Api, FakeClock], db_url: str) -> None:
     api, clock = api_clocked
     api.setup_actuator()
-    other_process = Database(db_url)
-    with other_process.write() as s:
-        row, key = create_key(s, "default", ["ingest", "read"], name="stand")
-    as_key = {"Authorization": f"Bearer {key}"}
+    other_process, row_id, as_key = _key_of_another_process(db_url)
     path = "/v1/aircraft/N1/actuators/ema1/telemetry"
     assert api.c.post(path, json=_one_sample(1), headers=as_key).status_code == 202
     with other_process.write() as s:
-        assert set_scopes(s, row.id, ["read"])
+        assert set_scopes(s, row_id, ["read"])
     other_process.dispose()
     clock.now += TTL_S + 0.01
     r = api.c.post(path, json=_one_sample(2), headers=as_key)
