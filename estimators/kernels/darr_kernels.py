@@ -340,17 +340,18 @@ WV_LEN = max(MAX_DIM, N_CHAN)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _monomial(coef: float, exps: FloatArray, z: FloatArray, first: int, n_par: int) -> float:
-    """``coef * prod_p z[first + p] ** exps[p]`` (integer exponents +-1 without a power)."""
+def _monomial(coef: float, exps: FloatArray, z: FloatArray, n_par: int) -> float:
+    """``coef * prod_p z[p] ** exps[p]`` (integer exponents +-1 without a power); callers pass a
+    view that starts at the first parameter, so one compiled version serves every offset."""
     m = coef
     for p in range(n_par):
         e = exps[p]
         if e == 1.0:
-            m *= z[first + p]
+            m *= z[p]
         elif e == -1.0:
-            m /= z[first + p]
+            m /= z[p]
         elif e != 0.0:
-            m *= z[first + p] ** e
+            m *= z[p] ** e
     return m
 
 
@@ -380,6 +381,7 @@ def subsystem_model(
     ``d(y+ / s_y) / d[z_0, rho]`` into ``vec[WV_F]`` and ``d(y+) / du_c`` into ``vec[WV_U]``.
     """
     z = vec[WV_Z]
+    z_par = z[1:]
     a_r = vec[WV_A_R]
     ay_r = vec[WV_AY_R]
     b_r = vec[WV_B_R]
@@ -394,7 +396,7 @@ def subsystem_model(
     for c in range(N_CHAN):
         gain_u[c] = 0.0
     for j in range(n_terms):
-        m = _monomial(coefs[j], exps[j], z, 1, n_par)
+        m = _monomial(coefs[j], exps[j], z_par, n_par)
         kind = kinds[j]
         if kind == TK_STATE_DOT:
             a += m
@@ -559,7 +561,7 @@ def relation_step(
             hrow[p] = 0.0
         r = 0.0
         for j in range(int(sc[SC_N_TERMS])):
-            m = _monomial(coefs[j], exps[j], z, 0, n_par)
+            m = _monomial(coefs[j], exps[j], z, n_par)
             value = 1.0 if kinds[j] == TK_CONST else sig[chans[j], orders[j]]
             r += m * value
             for p in range(n_par):
@@ -1013,7 +1015,7 @@ def darr_batch(
     alpha_row0 = fused_row0 + n_fused
 
     events = np.empty((4, EV_LEN))
-    n_ev = 0
+    n_ev = np.int64(0)  # typed, not the literal 0, so _push compiles once
     windows = np.empty((int(n // health_n) + 1, WIN_LEN))
     n_wo = 0
     sig = np.empty((N_CHAN, MAX_ORDER + 1))
