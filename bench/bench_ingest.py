@@ -50,6 +50,7 @@ from scipy.signal import lfilter
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+import http_load  # noqa: E402
 from fleethealth_client import (  # noqa: E402
     AsyncFleetHealthClient,
     EncodedBatch,
@@ -369,8 +370,9 @@ def bench_many(
 # ------------------------------------------------------------------------------------------------
 
 
-def _one_sample(k: int) -> dict[str, object]:
-    return {"batch_id": f"m{k}", "t": [1.7e9 + k * 0.01], "channels": {"current": [0.3], "voltage": [-8.0]}}
+def _one_sample(k: int) -> bytes:
+    body = {"batch_id": f"m{k}", "t": [1.7e9 + k * 0.01], "channels": {"current": [0.3], "voltage": [-8.0]}}
+    return json.dumps(body, separators=(",", ":")).encode()
 
 
 def _lat_figures(lat: list[float], elapsed_s: float) -> dict[str, float]:
@@ -383,110 +385,64 @@ def _lat_figures(lat: list[float], elapsed_s: float) -> dict[str, float]:
     }
 
 
+def _load(server: Server, connections: list[list[bytes]], expect: set[int], processes: int = 1) -> dict[str, float]:
+    """Run prebuilt requests through the lean client (:mod:`http_load`); the latency figures,
+    and how many requests were resent on a new connection."""
+    host, port = server.url.removeprefix("http://").split(":")
+    result = http_load.run_load(host, int(port), connections, processes)
+    wrong = {status: n for status, n in result.statuses.items() if status not in expect}
+    if wrong:
+        status = next(iter(wrong))
+        raise SystemExit(f"answered {wrong} (expected {sorted(expect)}): {result.samples[status][:500]!r}")
+    return _lat_figures(result.latencies_s, result.elapsed_s) | {"resent": float(result.resent)}
+
+
+def _post(server: Server, path: str, body: bytes) -> bytes:
+    host = server.url.removeprefix("http://")
+    headers = {"authorization": f"Bearer {server.api_key}", "content-type": "application/json"}
+    return http_load.request_bytes("POST", path, host, body, headers)
+
+
 def bench_post1_sequential(server: Server, tail: str, n: int, timeout_s: float) -> dict[str, float]:
     """One client, one sample per POST, one request after the other (latency)."""
-    import httpx
-
-    headers = {"Authorization": f"Bearer {server.api_key}"}
-    with httpx.Client(base_url=server.url, headers=headers, timeout=60.0) as c:
-        c.post(f"/v1/aircraft/{tail}/actuators", json={"actuator_id": "seq", "kind": "ema_voltage"}).raise_for_status()
-        path = f"/v1/aircraft/{tail}/actuators/seq/telemetry"
-        lat: list[float] = []
-        start = time.perf_counter()
-        for k in range(n):
-            t0 = time.perf_counter()
-            r = c.post(path, json=_one_sample(k))
-            lat.append(time.perf_counter() - t0)
-            if r.status_code != 202:
-                raise SystemExit(f"POST answered {r.status_code}: {r.text}")
-        figures = _lat_figures(lat, time.perf_counter() - start)
     with FleetHealthClient(server.url, server.api_key) as client:
+        client.create_actuator(tail, "seq", kind="ema_voltage")
+        path = f"/v1/aircraft/{tail}/actuators/seq/telemetry"
+        start = time.perf_counter()
+        figures = _load(server, [[_post(server, path, _one_sample(k)) for k in range(n)]], {202})
         client.wait_applied(tail, "seq", n, timeout_s=timeout_s, poll_s=0.01)
         figures["applied_s"] = time.perf_counter() - start
     return figures
 
 
 def bench_post1_concurrent(
-    server: Server, tail: str, clients: int, per_client: int, timeout_s: float
+    server: Server, tail: str, clients: int, per_client: int, processes: int
 ) -> dict[str, float]:
-    """``clients`` concurrent clients, each its own stream, one sample per POST."""
-    import httpx
-
-    retries = [0]
-
-    async def run() -> tuple[list[float], float]:
-        headers = {"Authorization": f"Bearer {server.api_key}"}
-        limits = httpx.Limits(max_connections=clients, max_keepalive_connections=clients)
-        async with httpx.AsyncClient(base_url=server.url, headers=headers, timeout=120.0, limits=limits) as c:
-            for i in range(clients):
-                r = await c.post(f"/v1/aircraft/{tail}/actuators", json={"actuator_id": f"c{i:03d}", "kind": "ema_voltage"})
-                r.raise_for_status()
-            lat: list[float] = []
-
-            async def one(i: int) -> None:
-                path = f"/v1/aircraft/{tail}/actuators/c{i:03d}/telemetry"
-                for k in range(per_client):
-                    t0 = time.perf_counter()
-                    for attempt in range(3):
-                        try:
-                            r = await c.post(path, json=_one_sample(k))
-                            break
-                        except (httpx.ReadError, httpx.RemoteProtocolError):
-                            # A kept-alive connection the server closed (idle past uvicorn's
-                            # keep-alive timeout while this loaded client was starved) as the
-                            # request went out: resent, which the batch id makes idempotent.
-                            retries[0] += 1
-                            if attempt == 2:
-                                raise
-                    lat.append(time.perf_counter() - t0)
-                    if r.status_code != 202:
-                        raise SystemExit(f"POST answered {r.status_code}: {r.text}")
-
-            start = time.perf_counter()
-            await asyncio.gather(*(one(i) for i in range(clients)))
-            return lat, time.perf_counter() - start
-
-    lat, elapsed = asyncio.run(run())
-    return _lat_figures(lat, elapsed) | {"resent": float(retries[0])}
+    """``clients`` concurrent clients (connections, over ``processes`` client processes), each
+    its own stream, one sample per POST."""
+    with FleetHealthClient(server.url, server.api_key) as client:
+        for i in range(clients):
+            client.create_actuator(tail, f"c{i:03d}", kind="ema_voltage")
+    connections = [
+        [_post(server, f"/v1/aircraft/{tail}/actuators/c{i:03d}/telemetry", _one_sample(k)) for k in range(per_client)]
+        for i in range(clients)
+    ]
+    return _load(server, connections, {202}, processes)
 
 
 def bench_plain_write(server: Server, tail_prefix: str, n: int) -> dict[str, float]:
     """POST /v1/aircraft one after the other: a write with no telemetry log behind it."""
-    import httpx
-
-    headers = {"Authorization": f"Bearer {server.api_key}"}
-    with httpx.Client(base_url=server.url, headers=headers, timeout=60.0) as c:
-        lat: list[float] = []
-        start = time.perf_counter()
-        for k in range(n):
-            t0 = time.perf_counter()
-            c.post("/v1/aircraft", json={"tail": f"{tail_prefix}{k:05d}"}).raise_for_status()
-            lat.append(time.perf_counter() - t0)
-        return _lat_figures(lat, time.perf_counter() - start)
+    requests = [_post(server, "/v1/aircraft", json.dumps({"tail": f"{tail_prefix}{k:05d}"}).encode())
+                for k in range(n)]
+    return _load(server, [requests], {201})
 
 
-def bench_floor(server: Server, clients: int, n: int) -> dict[str, float]:
+def bench_floor(server: Server, clients: int, n: int, processes: int) -> dict[str, float]:
     """GET /healthz (no key, no database, no thread) from ``clients`` concurrent clients: what
-    the HTTP stack alone (uvicorn, FastAPI, the middleware, the client on the same cores) costs."""
-    import httpx
-
-    async def run() -> tuple[list[float], float]:
-        limits = httpx.Limits(max_connections=clients, max_keepalive_connections=clients)
-        async with httpx.AsyncClient(base_url=server.url, timeout=60.0, limits=limits) as c:
-            lat: list[float] = []
-
-            async def one() -> None:
-                for _ in range(n):
-                    t0 = time.perf_counter()
-                    (await c.get("/healthz")).raise_for_status()
-                    lat.append(time.perf_counter() - t0)
-
-            start = time.perf_counter()
-            await asyncio.gather(*(one() for _ in range(clients)))
-            return lat, time.perf_counter() - start
-
-    lat, elapsed = asyncio.run(run())
-    return _lat_figures(lat, elapsed)
+    the HTTP stack alone (uvicorn, the application's routing and middleware) costs, the ceiling
+    of any other route."""
+    request = http_load.request_bytes("GET", "/healthz", server.url.removeprefix("http://"))
+    return _load(server, [[request] * n for _ in range(clients)], {200}, processes)
 
 
 async def _register_idle(
@@ -590,12 +546,14 @@ def run_backend(
                 rate["post1_sequential"] = bench_post1_sequential(server, tail, args.post1, args.timeout_s)
                 cpu1 = tree_cpu_s(pid)
                 rate["post1_concurrent"] = bench_post1_concurrent(
-                    server, tail, args.post1_clients, args.post1_per_client, args.timeout_s
+                    server, tail, args.post1_clients, args.post1_per_client, args.load_processes
                 )
                 cpu2 = tree_cpu_s(pid)
                 rate["plain_write"] = bench_plain_write(server, f"W{run_id}-", max(50, args.post1 // 4))
                 cpu3 = tree_cpu_s(pid)
-                rate["floor_concurrent"] = bench_floor(server, args.post1_clients, args.post1_per_client)
+                rate["floor_concurrent"] = bench_floor(
+                    server, args.post1_clients, args.post1_per_client, args.load_processes
+                )
                 cpu4 = tree_cpu_s(pid)
                 # Server CPU per request, the apply of each sample included (sequential case:
                 # measured until the last one is applied).
@@ -716,6 +674,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--post1", type=int, default=1000, help="one-sample POSTs, sequential client")
     parser.add_argument("--post1-clients", type=int, default=32)
     parser.add_argument("--post1-per-client", type=int, default=100)
+    parser.add_argument("--load-processes", type=int, default=2,
+                        help="client processes of the concurrent message-rate cases (bench/http_load.py)")
     parser.add_argument(
         "--baseline", type=Path, default=None,
         help="also run the same cases against this source tree (e.g. git worktree add /tmp/base main), side by side",
