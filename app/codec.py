@@ -39,7 +39,7 @@ def encode_columns(columns: Mapping[str, np.ndarray]) -> bytes:
         # message is the same for every block of these columns).
         schema, schema_message = _schema(tuple(columns))
         batch = pa.RecordBatch.from_arrays(arrays, schema=schema)
-        return schema_message + batch.serialize().to_pybytes() + _EOS
+        return schema_message + bytes(batch.serialize().to_pybytes()) + _EOS
     table = pa.Table.from_arrays(arrays, names=list(columns))
     if table.num_rows <= ENCODE_CHUNK_ROWS:
         sink = pa.BufferOutputStream()
