@@ -24,22 +24,33 @@ _EOS = b"\xff\xff\xff\xff\x00\x00\x00\x00"
 
 
 @functools.lru_cache(maxsize=256)
-def _schema(names: tuple[str, ...]) -> tuple[pa.Schema, bytes]:
-    """The float64 schema of these columns and its IPC message."""
-    schema = pa.schema([(name, pa.float64()) for name in names])
-    return schema, schema.serialize().to_pybytes()
+def _schema_message(names: tuple[str, ...]) -> bytes:
+    """The IPC schema message of float64 columns of these names."""
+    return bytes(pa.schema([(name, pa.float64()) for name in names]).serialize().to_pybytes())
+
+
+@functools.lru_cache(maxsize=1024)
+def _batch_header(n_columns: int, rows: int) -> bytes:
+    """The IPC message of a record batch of ``n_columns`` float64 columns of ``rows`` values, up
+    to its body. It depends on that shape alone: a float64 column from NumPy has no validity
+    buffer (NaN is a value, not a null) and its values fill whole 8-byte words, so the body is
+    the columns' values one after the other, unpadded."""
+    zeros = pa.array(np.zeros(rows))
+    batch = pa.RecordBatch.from_arrays([zeros] * n_columns, names=[f"c{i}" for i in range(n_columns)])
+    message = bytes(batch.serialize().to_pybytes())
+    return message[: len(message) - n_columns * rows * 8]
 
 
 def encode_columns(columns: Mapping[str, np.ndarray]) -> bytes:
-    arrays = [pa.array(np.asarray(col, dtype=np.float64)) for col in columns.values()]
-    rows = len(arrays[0]) if arrays else 0
-    if 0 < rows < COMPRESS_MIN_ROWS:
-        # A small block (a one-sample batch): the stream's three messages written directly,
-        # the same bytes as an IPC stream writer gives, at a third of its cost (the schema's
-        # message is the same for every block of these columns).
-        schema, schema_message = _schema(tuple(columns))
-        batch = pa.RecordBatch.from_arrays(arrays, schema=schema)
-        return schema_message + bytes(batch.serialize().to_pybytes()) + _EOS
+    values = [np.asarray(col, dtype="<f8") for col in columns.values()]
+    rows = len(values[0]) if values else 0
+    if 0 < rows < COMPRESS_MIN_ROWS and all(v.ndim == 1 and len(v) == rows for v in values):
+        # A small block (a one-sample batch, its outputs): the stream's messages put together
+        # from cached headers and the values (the same bytes as Arrow's stream writer gives,
+        # about 10x faster for a one-sample block of 36 columns).
+        return b"".join((_schema_message(tuple(columns)), _batch_header(len(values), rows),
+                         *(v.tobytes() for v in values), _EOS))
+    arrays = [pa.array(v) for v in values]
     table = pa.Table.from_arrays(arrays, names=list(columns))
     if table.num_rows <= ENCODE_CHUNK_ROWS:
         sink = pa.BufferOutputStream()

@@ -67,9 +67,20 @@ def test_a_small_block_is_the_stream_writers_bytes(rows: int) -> None:
     decoded = decode_columns(data)
     for name, col in columns.items():
         np.testing.assert_array_equal(decoded[name], col)
-    # Another set of names: its own schema.
+    # Another set of names: its own schema; many columns (a sample's outputs).
     renamed = {"t": columns["t"], "x": columns["current"]}
     assert encode_columns(renamed) == _stream_writer_bytes(renamed)
+    outputs = {f"out{i}": rng.normal(size=rows) for i in range(36)}
+    assert encode_columns(outputs) == _stream_writer_bytes(outputs)
+
+
+def test_blocks_the_shortcut_leaves_are_encoded_as_before() -> None:
+    empty = {"t": np.array([], dtype=np.float64)}
+    assert encode_columns(empty) == _stream_writer_bytes(empty)
+    strided = {"t": np.arange(20.0)[::2], "n": np.arange(10)}
+    assert encode_columns(strided) == _stream_writer_bytes(strided)
+    with pytest.raises(pa.ArrowInvalid):
+        encode_columns({"a": np.zeros(3), "b": np.zeros(2)})
 
 
 def test_missing_samples_raise_no_floating_point_warning() -> None:
