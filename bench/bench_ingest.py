@@ -394,7 +394,9 @@ def _load(server: Server, connections: list[list[bytes]], expect: set[int], proc
     if wrong:
         status = next(iter(wrong))
         raise SystemExit(f"answered {wrong} (expected {sorted(expect)}): {result.samples[status][:500]!r}")
-    return _lat_figures(result.latencies_s, result.elapsed_s) | {"resent": float(result.resent)}
+    return _lat_figures(result.latencies_s, result.elapsed_s) | {
+        "resent": float(result.resent), "client_cpu_ms": 1e3 * result.client_cpu_s / len(result.latencies_s)
+    }
 
 
 def _post(server: Server, path: str, body: bytes) -> bytes:
@@ -416,18 +418,25 @@ def bench_post1_sequential(server: Server, tail: str, n: int, timeout_s: float) 
 
 
 def bench_post1_concurrent(
-    server: Server, tail: str, clients: int, per_client: int, processes: int
+    server: Server, tail: str, clients: int, per_client: int, processes: int, timeout_s: float
 ) -> dict[str, float]:
     """``clients`` concurrent clients (connections, over ``processes`` client processes), each
-    its own stream, one sample per POST."""
+    its own stream, one sample per POST; then waits until every sample is applied (so that the
+    server CPU of this case includes their apply, and the next case starts without a backlog)."""
     with FleetHealthClient(server.url, server.api_key) as client:
         for i in range(clients):
             client.create_actuator(tail, f"c{i:03d}", kind="ema_voltage")
-    connections = [
-        [_post(server, f"/v1/aircraft/{tail}/actuators/c{i:03d}/telemetry", _one_sample(k)) for k in range(per_client)]
-        for i in range(clients)
-    ]
-    return _load(server, connections, {202}, processes)
+        connections = [
+            [_post(server, f"/v1/aircraft/{tail}/actuators/c{i:03d}/telemetry", _one_sample(k))
+             for k in range(per_client)]
+            for i in range(clients)
+        ]
+        start = time.perf_counter()
+        figures = _load(server, connections, {202}, processes)
+        for i in range(clients):
+            client.wait_applied(tail, f"c{i:03d}", per_client, timeout_s=timeout_s, poll_s=0.05)
+        figures["applied_s"] = time.perf_counter() - start
+    return figures
 
 
 def bench_plain_write(server: Server, tail_prefix: str, n: int) -> dict[str, float]:
@@ -435,6 +444,27 @@ def bench_plain_write(server: Server, tail_prefix: str, n: int) -> dict[str, flo
     requests = [_post(server, "/v1/aircraft", json.dumps({"tail": f"{tail_prefix}{k:05d}"}).encode())
                 for k in range(n)]
     return _load(server, [requests], {201})
+
+
+def bench_fdatasync(folder: Path, n: int = 200) -> dict[str, float]:
+    """4 KiB written and ``fdatasync`` -ed, ``n`` times, in the database's folder: the floor of a
+    durable acknowledgement's latency on this disk (SQLite ``synchronous=FULL`` syncs its WAL
+    once per commit)."""
+    path = folder / f"fdatasync-probe-{secrets.token_hex(4)}"
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC)
+    lat: list[float] = []
+    try:
+        block = b"\0" * 4096
+        start = time.perf_counter()
+        for _ in range(n):
+            t0 = time.perf_counter()
+            os.write(fd, block)
+            os.fdatasync(fd)
+            lat.append(time.perf_counter() - t0)
+        return _lat_figures(lat, time.perf_counter() - start)
+    finally:
+        os.close(fd)
+        path.unlink()
 
 
 def bench_floor(server: Server, clients: int, n: int, processes: int) -> dict[str, float]:
@@ -546,7 +576,7 @@ def run_backend(
                 rate["post1_sequential"] = bench_post1_sequential(server, tail, args.post1, args.timeout_s)
                 cpu1 = tree_cpu_s(pid)
                 rate["post1_concurrent"] = bench_post1_concurrent(
-                    server, tail, args.post1_clients, args.post1_per_client, args.load_processes
+                    server, tail, args.post1_clients, args.post1_per_client, args.load_processes, args.timeout_s
                 )
                 cpu2 = tree_cpu_s(pid)
                 rate["plain_write"] = bench_plain_write(server, f"W{run_id}-", max(50, args.post1 // 4))
@@ -560,10 +590,15 @@ def run_backend(
                 for name, used in (("post1_sequential", cpu1 - cpu0), ("post1_concurrent", cpu2 - cpu1),
                                    ("plain_write", cpu3 - cpu2), ("floor_concurrent", cpu4 - cpu3)):
                     rate[name]["server_cpu_ms"] = 1e3 * used / rate[name]["requests"]
+                rate["fdatasync"] = bench_fdatasync(workdir)
+                print(f"[{backend}] fdatasync of 4 KiB: median {rate['fdatasync']['median_ms']:.2f} ms, "
+                      f"p99 {rate['fdatasync']['p99_ms']:.2f} ms", flush=True)
                 for name, fig in rate.items():
+                    if name == "fdatasync":
+                        continue
                     print(f"[{backend}] {name}: {fig['per_s']:,.0f} requests/s, median "
                           f"{fig['median_ms']:.2f} ms, p99 {fig['p99_ms']:.2f} ms, server CPU "
-                          f"{fig['server_cpu_ms']:.2f} ms/request"
+                          f"{fig['server_cpu_ms']:.2f} ms/request, client CPU {fig['client_cpu_ms']:.2f} ms/request"
                           + (f", {fig['resent']:.0f} resent" if fig.get("resent") else ""), flush=True)
 
             tail = f"BS-{run_id}"
@@ -609,6 +644,7 @@ def print_table(results: dict[str, dict]) -> None:
     cases = [
         ("post1_sequential", "per_s", "1 client, sequential: requests/s", None),
         ("post1_sequential", "median_ms", "1 client, sequential: median ms", "<= 2 ms"),
+        ("fdatasync", "median_ms", "fdatasync of 4 KiB (this disk): median ms", None),
         ("post1_sequential", "p99_ms", "1 client, sequential: p99 ms", None),
         ("post1_sequential", "server_cpu_ms", "1 client: server CPU ms/request", None),
         ("post1_concurrent", "per_s", "32 clients: requests/s", ">= 3,000/s"),
@@ -616,8 +652,10 @@ def print_table(results: dict[str, dict]) -> None:
         ("post1_concurrent", "server_cpu_ms", "32 clients: server CPU ms/request", None),
         ("plain_write", "median_ms", "plain write, sequential: median ms", None),
         ("plain_write", "server_cpu_ms", "plain write: server CPU ms/request", None),
-        ("floor_concurrent", "per_s", "GET /healthz, 32 clients: requests/s", None),
+        ("post1_concurrent", "client_cpu_ms", "32 clients: client CPU ms/request", None),
+        ("floor_concurrent", "per_s", "ceiling, GET /healthz, 32 clients: req/s", None),
         ("floor_concurrent", "server_cpu_ms", "GET /healthz: server CPU ms/request", None),
+        ("floor_concurrent", "client_cpu_ms", "GET /healthz: client CPU ms/request", None),
     ]
     for key, field, text, goal in cases:
         vals = [results[lab].get("rate", {}).get(key, {}).get(field) for lab in labels]
@@ -626,6 +664,9 @@ def print_table(results: dict[str, dict]) -> None:
         cells = "".join(f"{'-' if v is None else f'{v:,.2f}' if field.endswith('ms') else f'{v:,.0f}':>22}"
                         for v in vals)
         print(f"{text:<44}{cells}{goal or '-':>22}")
+    print("The load client is bench/http_load.py (prebuilt HTTP/1.1 keep-alive requests); the ceiling is what "
+          "the server answers for GET /healthz (no key, no database) with the same client; server CPU includes "
+          "the apply of every sample (the POST cases wait until all are applied).")
     print()
     print("End-to-end ingest, samples/s: POST -> telemetry log -> FAKF applied -> results committed")
     keyed: dict[tuple[str, str], dict[str, Row]] = {}

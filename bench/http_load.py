@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import asyncio
 import pickle
+import resource
 import subprocess
 import sys
 import time
@@ -36,6 +37,8 @@ class LoadResult:
     #: answering (every request here is idempotent: a batch id, a GET, or a 409 taken as done).
     resent: int = 0
     elapsed_s: float = 0.0
+    #: CPU seconds the client processes used (user + system), connecting included.
+    client_cpu_s: float = 0.0
     #: One answer body per status (the first seen), to show what went wrong.
     samples: dict[int, bytes] = field(default_factory=dict)
 
@@ -171,8 +174,10 @@ def _child() -> int:
         return t0, await job
 
     t0, r = asyncio.run(main())
+    usage = resource.getrusage(resource.RUSAGE_SELF)
     # Plain values: this module is __main__ here, not where the parent finds LoadResult.
-    sys.stdout.buffer.write(pickle.dumps((t0, r.latencies_s, dict(r.statuses), r.resent, r.elapsed_s, r.samples)))
+    sys.stdout.buffer.write(pickle.dumps((t0, r.latencies_s, dict(r.statuses), r.resent, r.elapsed_s, r.samples,
+                                          usage.ru_utime + usage.ru_stime)))
     sys.stdout.buffer.flush()
     return 0
 
@@ -202,8 +207,8 @@ def run_load(host: str, port: int, connections: list[list[bytes]], processes: in
         outs = []
         for child in children:
             assert child.stdout is not None
-            t0, lat, statuses, resent, elapsed, samples = pickle.loads(child.stdout.read())
-            outs.append((t0, LoadResult(lat, Counter(statuses), resent, elapsed, samples)))
+            t0, lat, statuses, resent, elapsed, samples, cpu = pickle.loads(child.stdout.read())
+            outs.append((t0, LoadResult(lat, Counter(statuses), resent, elapsed, samples, cpu)))
             if child.wait(timeout=60) != 0:
                 raise RuntimeError("a load client process failed")
     finally:
@@ -218,6 +223,7 @@ def run_load(host: str, port: int, connections: list[list[bytes]], processes: in
         merged.latencies_s += r.latencies_s
         merged.statuses.update(r.statuses)
         merged.resent += r.resent
+        merged.client_cpu_s += r.client_cpu_s
         for status, body in r.samples.items():
             merged.samples.setdefault(status, body)
     merged.elapsed_s = t_end - t_start
