@@ -37,7 +37,7 @@ class LoadResult:
     #: answering (every request here is idempotent: a batch id, a GET, or a 409 taken as done).
     resent: int = 0
     elapsed_s: float = 0.0
-    #: CPU seconds the client processes used (user + system), connecting included.
+    #: CPU seconds the client processes used (user + system) from the start to the last answer.
     client_cpu_s: float = 0.0
     #: One answer body per status (the first seen), to show what went wrong.
     samples: dict[int, bytes] = field(default_factory=dict)
@@ -147,6 +147,11 @@ async def _run_plan(
     return connected, asyncio.ensure_future(finish())
 
 
+def _cpu_s() -> float:
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
 def _event_loop_policy() -> None:
     try:
         import uvloop
@@ -170,14 +175,16 @@ def _child() -> int:
         sys.stdout.buffer.flush()
         await loop.run_in_executor(None, sys.stdin.buffer.readline)
         t0 = time.monotonic()
+        cpu0 = _cpu_s()
         go.set()
-        return t0, await job
+        result = await job
+        result.client_cpu_s = _cpu_s() - cpu0
+        return t0, result
 
     t0, r = asyncio.run(main())
-    usage = resource.getrusage(resource.RUSAGE_SELF)
     # Plain values: this module is __main__ here, not where the parent finds LoadResult.
     sys.stdout.buffer.write(pickle.dumps((t0, r.latencies_s, dict(r.statuses), r.resent, r.elapsed_s, r.samples,
-                                          usage.ru_utime + usage.ru_stime)))
+                                          r.client_cpu_s)))
     sys.stdout.buffer.flush()
     return 0
 
@@ -208,7 +215,7 @@ def run_load(host: str, port: int, connections: list[list[bytes]], processes: in
         for child in children:
             assert child.stdout is not None
             t0, lat, statuses, resent, elapsed, samples, cpu = pickle.loads(child.stdout.read())
-            outs.append((t0, LoadResult(lat, Counter(statuses), resent, elapsed, samples, cpu)))
+            outs.append((t0, LoadResult(lat, Counter(statuses), resent, elapsed, cpu, samples)))
             if child.wait(timeout=60) != 0:
                 raise RuntimeError("a load client process failed")
     finally:
