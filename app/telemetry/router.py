@@ -177,8 +177,9 @@ class LeanIngest:
     It takes a request only when nothing but the body can make it fail: a POST to the ingest
     path with no query string, a small body of declared length in a supported media type, an
     API key the :class:`~app.auth.service.KeyVerifier` remembers with the ingest scope and an
-    actuator the :class:`~app.telemetry.service.ActuatorLookup` remembers. Any other request (a query, an unknown key, a cache miss, a large or
-    chunked body, ...) goes on to the route, whose answers are the contract. From the body on,
+    actuator the :class:`~app.telemetry.service.ActuatorLookup` remembers. Any other request (a
+    query, an unknown key, a cache miss, a large or chunked body, ...) goes on to the route,
+    whose answers are the contract. From the body on,
     both share :func:`_log` and give the same answers: 202 with the same body and headers, a
     :class:`~app.errors.DomainError` or a storage fault in the one error shape
     (:func:`app.errors.domain_error_response`, :func:`app.errors.storage_fault_response`),
@@ -208,7 +209,7 @@ class LeanIngest:
         try:
             try:
                 await reservation.take_async(length)
-                body = await self._read(receive, length)
+                body = await self._read(receive)
                 params = TimeParams(batch_id=idempotency_key, t0=None, sample_rate_hz=None)
                 ack = await _log(state, operator_id, match.group(1), match.group(2), body, mt, params, reservation)
             except DomainError as exc:
@@ -270,8 +271,8 @@ class LeanIngest:
         return state, principal.operator_id, mt, size, idempotency_key
 
     @staticmethod
-    async def _read(receive: Receive, length: int) -> RequestBody:
-        """The body (of declared ``length``: the server frames it)."""
+    async def _read(receive: Receive) -> RequestBody:
+        """The body (of the declared length: the server frames it)."""
         memory = bytearray()
         while True:
             message = await receive()
