@@ -7,6 +7,7 @@ reader tells both apart by the IPC message itself."""
 
 from __future__ import annotations
 
+import functools
 import io
 from collections.abc import Collection, Mapping
 
@@ -18,21 +19,48 @@ COMPRESS_MIN_ROWS = 256
 #: size, so a large block is written as record batches of about 0.5 MB per column.
 ENCODE_CHUNK_ROWS = 65_536
 _COMPRESSED = pa.ipc.IpcWriteOptions(compression="zstd")
-_PLAIN = pa.ipc.IpcWriteOptions()
+#: The end-of-stream marker of an Arrow IPC stream (continuation, then a zero length).
+_EOS = b"\xff\xff\xff\xff\x00\x00\x00\x00"
+
+
+@functools.lru_cache(maxsize=256)
+def _schema_message(names: tuple[str, ...]) -> bytes:
+    """The IPC schema message of float64 columns of these names."""
+    return bytes(pa.schema([(name, pa.float64()) for name in names]).serialize().to_pybytes())
+
+
+@functools.lru_cache(maxsize=1024)
+def _batch_header(n_columns: int, rows: int) -> bytes:
+    """The IPC message of a record batch of ``n_columns`` float64 columns of ``rows`` values, up
+    to its body. It depends on that shape alone: a float64 column from NumPy has no validity
+    buffer (NaN is a value, not a null) and its values fill whole 8-byte words, so the body is
+    the columns' values one after the other, unpadded."""
+    zeros = pa.array(np.zeros(rows))
+    batch = pa.RecordBatch.from_arrays([zeros] * n_columns, names=[f"c{i}" for i in range(n_columns)])
+    message = bytes(batch.serialize().to_pybytes())
+    return message[: len(message) - n_columns * rows * 8]
 
 
 def encode_columns(columns: Mapping[str, np.ndarray]) -> bytes:
-    table = pa.table({name: pa.array(np.asarray(col, dtype=np.float64)) for name, col in columns.items()})
-    options = _COMPRESSED if table.num_rows >= COMPRESS_MIN_ROWS else _PLAIN
+    values = [np.asarray(col, dtype="<f8") for col in columns.values()]
+    rows = len(values[0]) if values else 0
+    if 0 < rows < COMPRESS_MIN_ROWS and all(v.ndim == 1 and len(v) == rows for v in values):
+        # A small block (a one-sample batch, its outputs): the stream's messages put together
+        # from cached headers and the values (the same bytes as Arrow's stream writer gives,
+        # about 10x faster for a one-sample block of 36 columns).
+        return b"".join((_schema_message(tuple(columns)), _batch_header(len(values), rows),
+                         *(v.tobytes() for v in values), _EOS))
+    arrays = [pa.array(v) for v in values]
+    table = pa.Table.from_arrays(arrays, names=list(columns))
     if table.num_rows <= ENCODE_CHUNK_ROWS:
         sink = pa.BufferOutputStream()
-        with pa.ipc.new_stream(sink, table.schema, options=options) as writer:
+        with pa.ipc.new_stream(sink, table.schema, options=_COMPRESSED) as writer:
             writer.write_table(table)
         return bytes(sink.getvalue().to_pybytes())
     # A large block goes straight into the bytes it ends as: Arrow's output stream grows by
     # doubling and is then copied out (about 4x the payload at the peak, against 2x here).
     out = io.BytesIO()
-    with pa.ipc.new_stream(pa.PythonFile(out, mode="w"), table.schema, options=options) as writer:
+    with pa.ipc.new_stream(pa.PythonFile(out, mode="w"), table.schema, options=_COMPRESSED) as writer:
         writer.write_table(table, max_chunksize=ENCODE_CHUNK_ROWS)
     return out.getvalue()
 

@@ -274,15 +274,28 @@ class OptionsAllow:
         await send({"type": "http.response.body", "body": body})
 
 
+def domain_error_response(exc: DomainError, retry_after_s: int) -> Response:
+    """The answer to a :class:`DomainError` (``retry_after_s``: the 503s' ``Retry-After``)."""
+    headers = {"WWW-Authenticate": "Bearer"} if exc.status_code == 401 else None
+    if exc.status_code == 503:
+        headers = {"Retry-After": str(retry_after_s)}
+    return json_response({"error": exc.name, "detail": exc.detail}, status_code=exc.status_code, headers=headers)
+
+
+def storage_fault_response(path: str, exc: Exception, retry_after_s: int) -> Response:
+    """The answer to one of :data:`STORAGE_FAULTS` (logged, one line)."""
+    log.warning("storage unavailable (%s): %s", path, _first_line(exc))
+    return json_response(
+        {"error": "StorageUnavailable",
+         "detail": f"the database is unavailable ({_first_line(exc)}); nothing was stored, retry later"},
+        status_code=503, headers={"Retry-After": str(retry_after_s)},
+    )
+
+
 def install_handlers(app: FastAPI) -> None:
     @app.exception_handler(DomainError)
     async def _domain(request: Request, exc: DomainError) -> Response:
-        headers = {"WWW-Authenticate": "Bearer"} if exc.status_code == 401 else None
-        if exc.status_code == 503:
-            headers = {"Retry-After": str(request.app.state.settings.storage_retry_after_s)}
-        return json_response(
-            {"error": exc.name, "detail": exc.detail}, status_code=exc.status_code, headers=headers
-        )
+        return domain_error_response(exc, request.app.state.settings.storage_retry_after_s)
 
     @app.exception_handler(RequestValidationError)
     async def _validation(_: Request, exc: RequestValidationError) -> Response:
@@ -318,13 +331,7 @@ def install_handlers(app: FastAPI) -> None:
 
 
 async def _storage_fault(request: Request, exc: Exception) -> Response:
-    retry_after = str(request.app.state.settings.storage_retry_after_s)
-    log.warning("storage unavailable (%s): %s", request.url.path, _first_line(exc))
-    return json_response(
-        {"error": "StorageUnavailable",
-         "detail": f"the database is unavailable ({_first_line(exc)}); nothing was stored, retry later"},
-        status_code=503, headers={"Retry-After": retry_after},
-    )
+    return storage_fault_response(request.url.path, exc, request.app.state.settings.storage_retry_after_s)
 
 
 def _first_line(exc: BaseException) -> str:

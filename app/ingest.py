@@ -44,6 +44,8 @@ ARROW_TYPES = ("application/vnd.apache.arrow.stream",)
 SUPPORTED_TYPES = JSON_TYPES + CSV_TYPES + ARROW_TYPES
 TIME_COLUMN = "t"
 MAX_BATCH_ID_LEN = 128
+#: Largest integer float64 holds exactly: every integer of magnitude <= 2**53 is exact.
+FLOAT64_EXACT_INT = 2**53
 # Bytes a decoded sample may take per column: 8 for the float64 value, 1 of allowance for the
 # validity bitmap (1 bit) and the alignment padding of Arrow buffers.
 DECODED_BYTES_PER_VALUE = 9
@@ -300,9 +302,28 @@ def parse_frame(
     return seq, _validate(batch_id, t_s, columns, expected_channels, max_samples, end_of_run)
 
 
+#: A JSON list up to this length whose values are all floats, exact integers or nulls becomes an
+#: array directly (about 1 us against 20 us through Arrow for one value); anything else goes
+#: through Arrow, whose refusals are the contract.
+SMALL_LIST_MAX = 64
+
+
+def _small_list(values: list[Any]) -> np.ndarray | None:
+    if len(values) > SMALL_LIST_MAX:
+        return None
+    for v in values:
+        t = type(v)
+        if t is not float and v is not None and not (t is int and -FLOAT64_EXACT_INT <= v <= FLOAT64_EXACT_INT):
+            return None
+    return np.array(values, dtype=np.float64)
+
+
 def _to_float_array(values: Any, name: str) -> np.ndarray:
     if not isinstance(values, list):
         raise InvalidBatch(f"channel {name!r} must be a list of numbers or nulls")
+    small = _small_list(values)
+    if small is not None:
+        return small
     try:
         arr = pa.array(values)
     except (pa.ArrowInvalid, pa.ArrowTypeError, OverflowError) as exc:

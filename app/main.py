@@ -153,6 +153,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     install_handlers(app)
     app.openapi = lambda: document_errors(FastAPI.openapi(app))  # type: ignore[method-assign]
+    # The common case of a telemetry POST, inside the guard (which refuses control characters
+    # first); every other request goes on to the routes.
+    app.add_middleware(telemetry_router.LeanIngest)
     app.add_middleware(ControlCharGuard)
     for module in (
         system_router,

@@ -50,6 +50,7 @@ from scipy.signal import lfilter
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+import http_load  # noqa: E402
 from fleethealth_client import (  # noqa: E402
     AsyncFleetHealthClient,
     EncodedBatch,
@@ -369,8 +370,9 @@ def bench_many(
 # ------------------------------------------------------------------------------------------------
 
 
-def _one_sample(k: int) -> dict[str, object]:
-    return {"batch_id": f"m{k}", "t": [1.7e9 + k * 0.01], "channels": {"current": [0.3], "voltage": [-8.0]}}
+def _one_sample(k: int) -> bytes:
+    body = {"batch_id": f"m{k}", "t": [1.7e9 + k * 0.01], "channels": {"current": [0.3], "voltage": [-8.0]}}
+    return json.dumps(body, separators=(",", ":")).encode()
 
 
 def _lat_figures(lat: list[float], elapsed_s: float) -> dict[str, float]:
@@ -383,110 +385,94 @@ def _lat_figures(lat: list[float], elapsed_s: float) -> dict[str, float]:
     }
 
 
+def _load(server: Server, connections: list[list[bytes]], expect: set[int], processes: int = 1) -> dict[str, float]:
+    """Run prebuilt requests through the lean client (:mod:`http_load`); the latency figures,
+    and how many requests were resent on a new connection."""
+    host, port = server.url.removeprefix("http://").split(":")
+    result = http_load.run_load(host, int(port), connections, processes)
+    wrong = {status: n for status, n in result.statuses.items() if status not in expect}
+    if wrong:
+        status = next(iter(wrong))
+        raise SystemExit(f"answered {wrong} (expected {sorted(expect)}): {result.samples[status][:500]!r}")
+    return _lat_figures(result.latencies_s, result.elapsed_s) | {
+        "resent": float(result.resent), "client_cpu_ms": 1e3 * result.client_cpu_s / len(result.latencies_s)
+    }
+
+
+def _post(server: Server, path: str, body: bytes) -> bytes:
+    host = server.url.removeprefix("http://")
+    headers = {"authorization": f"Bearer {server.api_key}", "content-type": "application/json"}
+    return http_load.request_bytes("POST", path, host, body, headers)
+
+
 def bench_post1_sequential(server: Server, tail: str, n: int, timeout_s: float) -> dict[str, float]:
     """One client, one sample per POST, one request after the other (latency)."""
-    import httpx
-
-    headers = {"Authorization": f"Bearer {server.api_key}"}
-    with httpx.Client(base_url=server.url, headers=headers, timeout=60.0) as c:
-        c.post(f"/v1/aircraft/{tail}/actuators", json={"actuator_id": "seq", "kind": "ema_voltage"}).raise_for_status()
-        path = f"/v1/aircraft/{tail}/actuators/seq/telemetry"
-        lat: list[float] = []
-        start = time.perf_counter()
-        for k in range(n):
-            t0 = time.perf_counter()
-            r = c.post(path, json=_one_sample(k))
-            lat.append(time.perf_counter() - t0)
-            if r.status_code != 202:
-                raise SystemExit(f"POST answered {r.status_code}: {r.text}")
-        figures = _lat_figures(lat, time.perf_counter() - start)
     with FleetHealthClient(server.url, server.api_key) as client:
+        client.create_actuator(tail, "seq", kind="ema_voltage")
+        path = f"/v1/aircraft/{tail}/actuators/seq/telemetry"
+        start = time.perf_counter()
+        figures = _load(server, [[_post(server, path, _one_sample(k)) for k in range(n)]], {202})
         client.wait_applied(tail, "seq", n, timeout_s=timeout_s, poll_s=0.01)
         figures["applied_s"] = time.perf_counter() - start
     return figures
 
 
 def bench_post1_concurrent(
-    server: Server, tail: str, clients: int, per_client: int, timeout_s: float
+    server: Server, tail: str, clients: int, per_client: int, processes: int, timeout_s: float
 ) -> dict[str, float]:
-    """``clients`` concurrent clients, each its own stream, one sample per POST."""
-    import httpx
-
-    retries = [0]
-
-    async def run() -> tuple[list[float], float]:
-        headers = {"Authorization": f"Bearer {server.api_key}"}
-        limits = httpx.Limits(max_connections=clients, max_keepalive_connections=clients)
-        async with httpx.AsyncClient(base_url=server.url, headers=headers, timeout=120.0, limits=limits) as c:
-            for i in range(clients):
-                r = await c.post(f"/v1/aircraft/{tail}/actuators", json={"actuator_id": f"c{i:03d}", "kind": "ema_voltage"})
-                r.raise_for_status()
-            lat: list[float] = []
-
-            async def one(i: int) -> None:
-                path = f"/v1/aircraft/{tail}/actuators/c{i:03d}/telemetry"
-                for k in range(per_client):
-                    t0 = time.perf_counter()
-                    for attempt in range(3):
-                        try:
-                            r = await c.post(path, json=_one_sample(k))
-                            break
-                        except (httpx.ReadError, httpx.RemoteProtocolError):
-                            # A kept-alive connection the server closed (idle past uvicorn's
-                            # keep-alive timeout while this loaded client was starved) as the
-                            # request went out: resent, which the batch id makes idempotent.
-                            retries[0] += 1
-                            if attempt == 2:
-                                raise
-                    lat.append(time.perf_counter() - t0)
-                    if r.status_code != 202:
-                        raise SystemExit(f"POST answered {r.status_code}: {r.text}")
-
-            start = time.perf_counter()
-            await asyncio.gather(*(one(i) for i in range(clients)))
-            return lat, time.perf_counter() - start
-
-    lat, elapsed = asyncio.run(run())
-    return _lat_figures(lat, elapsed) | {"resent": float(retries[0])}
+    """``clients`` concurrent clients (connections, over ``processes`` client processes), each
+    its own stream, one sample per POST; then waits until every sample is applied (so that the
+    server CPU of this case includes their apply, and the next case starts without a backlog)."""
+    with FleetHealthClient(server.url, server.api_key) as client:
+        for i in range(clients):
+            client.create_actuator(tail, f"c{i:03d}", kind="ema_voltage")
+        connections = [
+            [_post(server, f"/v1/aircraft/{tail}/actuators/c{i:03d}/telemetry", _one_sample(k))
+             for k in range(per_client)]
+            for i in range(clients)
+        ]
+        start = time.perf_counter()
+        figures = _load(server, connections, {202}, processes)
+        for i in range(clients):
+            client.wait_applied(tail, f"c{i:03d}", per_client, timeout_s=timeout_s, poll_s=0.05)
+        figures["applied_s"] = time.perf_counter() - start
+    return figures
 
 
 def bench_plain_write(server: Server, tail_prefix: str, n: int) -> dict[str, float]:
     """POST /v1/aircraft one after the other: a write with no telemetry log behind it."""
-    import httpx
+    requests = [_post(server, "/v1/aircraft", json.dumps({"tail": f"{tail_prefix}{k:05d}"}).encode())
+                for k in range(n)]
+    return _load(server, [requests], {201})
 
-    headers = {"Authorization": f"Bearer {server.api_key}"}
-    with httpx.Client(base_url=server.url, headers=headers, timeout=60.0) as c:
-        lat: list[float] = []
+
+def bench_fdatasync(folder: Path, n: int = 200) -> dict[str, float]:
+    """4 KiB written and ``fdatasync`` -ed, ``n`` times, in the database's folder: the floor of a
+    durable acknowledgement's latency on this disk (SQLite ``synchronous=FULL`` syncs its WAL
+    once per commit)."""
+    path = folder / f"fdatasync-probe-{secrets.token_hex(4)}"
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC)
+    lat: list[float] = []
+    try:
+        block = b"\0" * 4096
         start = time.perf_counter()
-        for k in range(n):
+        for _ in range(n):
             t0 = time.perf_counter()
-            c.post("/v1/aircraft", json={"tail": f"{tail_prefix}{k:05d}"}).raise_for_status()
+            os.write(fd, block)
+            os.fdatasync(fd)
             lat.append(time.perf_counter() - t0)
         return _lat_figures(lat, time.perf_counter() - start)
+    finally:
+        os.close(fd)
+        path.unlink()
 
 
-def bench_floor(server: Server, clients: int, n: int) -> dict[str, float]:
+def bench_floor(server: Server, clients: int, n: int, processes: int) -> dict[str, float]:
     """GET /healthz (no key, no database, no thread) from ``clients`` concurrent clients: what
-    the HTTP stack alone (uvicorn, FastAPI, the middleware, the client on the same cores) costs."""
-    import httpx
-
-    async def run() -> tuple[list[float], float]:
-        limits = httpx.Limits(max_connections=clients, max_keepalive_connections=clients)
-        async with httpx.AsyncClient(base_url=server.url, timeout=60.0, limits=limits) as c:
-            lat: list[float] = []
-
-            async def one() -> None:
-                for _ in range(n):
-                    t0 = time.perf_counter()
-                    (await c.get("/healthz")).raise_for_status()
-                    lat.append(time.perf_counter() - t0)
-
-            start = time.perf_counter()
-            await asyncio.gather(*(one() for _ in range(clients)))
-            return lat, time.perf_counter() - start
-
-    lat, elapsed = asyncio.run(run())
-    return _lat_figures(lat, elapsed)
+    the HTTP stack alone (uvicorn, the application's routing and middleware) costs, the ceiling
+    of any other route."""
+    request = http_load.request_bytes("GET", "/healthz", server.url.removeprefix("http://"))
+    return _load(server, [[request] * n for _ in range(clients)], {200}, processes)
 
 
 async def _register_idle(
@@ -590,22 +576,29 @@ def run_backend(
                 rate["post1_sequential"] = bench_post1_sequential(server, tail, args.post1, args.timeout_s)
                 cpu1 = tree_cpu_s(pid)
                 rate["post1_concurrent"] = bench_post1_concurrent(
-                    server, tail, args.post1_clients, args.post1_per_client, args.timeout_s
+                    server, tail, args.post1_clients, args.post1_per_client, args.load_processes, args.timeout_s
                 )
                 cpu2 = tree_cpu_s(pid)
                 rate["plain_write"] = bench_plain_write(server, f"W{run_id}-", max(50, args.post1 // 4))
                 cpu3 = tree_cpu_s(pid)
-                rate["floor_concurrent"] = bench_floor(server, args.post1_clients, args.post1_per_client)
+                rate["floor_concurrent"] = bench_floor(
+                    server, args.post1_clients, args.post1_per_client, args.load_processes
+                )
                 cpu4 = tree_cpu_s(pid)
                 # Server CPU per request, the apply of each sample included (sequential case:
                 # measured until the last one is applied).
                 for name, used in (("post1_sequential", cpu1 - cpu0), ("post1_concurrent", cpu2 - cpu1),
                                    ("plain_write", cpu3 - cpu2), ("floor_concurrent", cpu4 - cpu3)):
                     rate[name]["server_cpu_ms"] = 1e3 * used / rate[name]["requests"]
+                rate["fdatasync"] = bench_fdatasync(workdir)
+                print(f"[{backend}] fdatasync of 4 KiB: median {rate['fdatasync']['median_ms']:.2f} ms, "
+                      f"p99 {rate['fdatasync']['p99_ms']:.2f} ms", flush=True)
                 for name, fig in rate.items():
+                    if name == "fdatasync":
+                        continue
                     print(f"[{backend}] {name}: {fig['per_s']:,.0f} requests/s, median "
                           f"{fig['median_ms']:.2f} ms, p99 {fig['p99_ms']:.2f} ms, server CPU "
-                          f"{fig['server_cpu_ms']:.2f} ms/request"
+                          f"{fig['server_cpu_ms']:.2f} ms/request, client CPU {fig['client_cpu_ms']:.2f} ms/request"
                           + (f", {fig['resent']:.0f} resent" if fig.get("resent") else ""), flush=True)
 
             tail = f"BS-{run_id}"
@@ -651,6 +644,7 @@ def print_table(results: dict[str, dict]) -> None:
     cases = [
         ("post1_sequential", "per_s", "1 client, sequential: requests/s", None),
         ("post1_sequential", "median_ms", "1 client, sequential: median ms", "<= 2 ms"),
+        ("fdatasync", "median_ms", "fdatasync of 4 KiB (this disk): median ms", None),
         ("post1_sequential", "p99_ms", "1 client, sequential: p99 ms", None),
         ("post1_sequential", "server_cpu_ms", "1 client: server CPU ms/request", None),
         ("post1_concurrent", "per_s", "32 clients: requests/s", ">= 3,000/s"),
@@ -658,8 +652,10 @@ def print_table(results: dict[str, dict]) -> None:
         ("post1_concurrent", "server_cpu_ms", "32 clients: server CPU ms/request", None),
         ("plain_write", "median_ms", "plain write, sequential: median ms", None),
         ("plain_write", "server_cpu_ms", "plain write: server CPU ms/request", None),
-        ("floor_concurrent", "per_s", "GET /healthz, 32 clients: requests/s", None),
+        ("post1_concurrent", "client_cpu_ms", "32 clients: client CPU ms/request", None),
+        ("floor_concurrent", "per_s", "ceiling, GET /healthz, 32 clients: req/s", None),
         ("floor_concurrent", "server_cpu_ms", "GET /healthz: server CPU ms/request", None),
+        ("floor_concurrent", "client_cpu_ms", "GET /healthz: client CPU ms/request", None),
     ]
     for key, field, text, goal in cases:
         vals = [results[lab].get("rate", {}).get(key, {}).get(field) for lab in labels]
@@ -668,6 +664,9 @@ def print_table(results: dict[str, dict]) -> None:
         cells = "".join(f"{'-' if v is None else f'{v:,.2f}' if field.endswith('ms') else f'{v:,.0f}':>22}"
                         for v in vals)
         print(f"{text:<44}{cells}{goal or '-':>22}")
+    print("The load client is bench/http_load.py (prebuilt HTTP/1.1 keep-alive requests); the ceiling is what "
+          "the server answers for GET /healthz (no key, no database) with the same client; server CPU includes "
+          "the apply of every sample (the POST cases wait until all are applied).")
     print()
     print("End-to-end ingest, samples/s: POST -> telemetry log -> FAKF applied -> results committed")
     keyed: dict[tuple[str, str], dict[str, Row]] = {}
@@ -716,6 +715,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--post1", type=int, default=1000, help="one-sample POSTs, sequential client")
     parser.add_argument("--post1-clients", type=int, default=32)
     parser.add_argument("--post1-per-client", type=int, default=100)
+    parser.add_argument("--load-processes", type=int, default=2,
+                        help="client processes of the concurrent message-rate cases (bench/http_load.py)")
     parser.add_argument(
         "--baseline", type=Path, default=None,
         help="also run the same cases against this source tree (e.g. git worktree add /tmp/base main), side by side",

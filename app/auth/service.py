@@ -27,8 +27,11 @@ class Principal:
     scopes: frozenset[str]
     key_id: int
 
+    def has(self, scope: str) -> bool:
+        return scope in self.scopes or "admin" in self.scopes
+
     def require(self, scope: str) -> None:
-        if scope not in self.scopes and "admin" not in self.scopes:
+        if not self.has(scope):
             raise Forbidden(f"this API key lacks the {scope!r} scope")
 
 
