@@ -76,12 +76,6 @@ _PENDING = (
 _PAYLOADS = select(TelemetryBatch.seq, TelemetryBatch.payload).where(
     TelemetryBatch.actuator_pk == bindparam("pk"), TelemetryBatch.seq.between(bindparam("lo"), bindparam("hi"))
 )
-_MARK_APPLIED = (
-    update(TelemetryBatch)
-    .where(TelemetryBatch.actuator_pk == bindparam("pk"), TelemetryBatch.seq.between(bindparam("lo"), bindparam("hi")))
-    .values(applied_at=bindparam("at"))
-    .execution_options(synchronize_session=False)
-)
 
 
 def claim_many(session: Session, actuator_pks: Sequence[int], *, is_sqlite: bool) -> dict[int, Stream]:
@@ -143,11 +137,6 @@ def payloads(session: Session, actuator_pk: int, seqs: Sequence[int]) -> dict[in
     wanted = set(seqs)
     rows = session.execute(_PAYLOADS, {"pk": actuator_pk, "lo": min(seqs), "hi": max(seqs)})
     return {int(seq): payload for seq, payload in rows if seq in wanted}
-
-
-def mark_batches_applied(session: Session, actuator_pk: int, first_seq: int, last_seq: int, at: datetime) -> None:
-    """Stamp the stream's batches first_seq..last_seq as applied (one statement)."""
-    session.execute(_MARK_APPLIED, {"pk": actuator_pk, "lo": first_seq, "hi": last_seq, "at": at})
 
 
 def claim(session: Session, actuator_pk: int, *, is_sqlite: bool) -> Stream | None:
@@ -304,16 +293,22 @@ def count_failed(session: Session) -> int:
 
 
 def drop_applied_payloads(session: Session, older_than_s: float) -> int:
-    """Retention: forget raw payloads of batches applied more than ``older_than_s`` ago."""
+    """Retention: forget the raw payloads of applied batches (seq at or before their stream's
+    applied mark) received more than ``older_than_s`` ago. A batch not applied yet keeps its
+    payload however old it is."""
     cutoff = datetime.fromtimestamp(utcnow().timestamp() - older_than_s, UTC)
+    applied_mark = (
+        select(Stream.last_applied_seq).where(Stream.actuator_pk == TelemetryBatch.actuator_pk).scalar_subquery()
+    )
     res = session.execute(
         update(TelemetryBatch)
         .where(
-            TelemetryBatch.applied_at.is_not(None),
-            TelemetryBatch.applied_at < cutoff,
+            TelemetryBatch.received_at < cutoff,
             TelemetryBatch.payload.is_not(None),
+            TelemetryBatch.seq <= applied_mark,
         )
         .values(payload=None)
+        .execution_options(synchronize_session=False)
     )
     return int(getattr(res, "rowcount", 0) or 0)
 

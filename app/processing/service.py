@@ -218,7 +218,6 @@ def apply_pending(
     now = utcnow()
     _label(step.rows, est_rows)
     repository.insert_rows(session, step.rows)
-    repository.mark_batches_applied(session, actuator_pk, pending[0].seq, pending[-1].seq, now)
     for er, runner in zip(est_rows, step.runners, strict=True):
         er.state = runner.kind.dump_state(runner.state)
         er.applied_seq = pending[-1].seq
