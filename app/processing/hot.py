@@ -3,7 +3,7 @@
 
 The store stays the truth: an entry is used only when the row the apply just read (inside its
 transaction, under the stream's claim) holds exactly the bytes the entry was made from, state
-and config alike. Whatever else happened to the row since (another process applied the stream,
+and config alike, and the kind still reads states of the version it held. Whatever else happened to the row since (another process applied the stream,
 an admin rewind reset it, a maintenance action started a new baseline, a replay rewrote it, or
 this process's own transaction rolled back after the entry was made) changed those bytes, and
 the state is read from the row again. An entry is taken out when it is used and put back only
@@ -38,6 +38,13 @@ class _Entry:
     raw_config: Mapping[str, Any]
     config: Any
     state: Any
+    # The kind's STATE_VERSION when the entry was made: a state is never taken past a change
+    # of the layout the kind reads (the row is read, and replayed if unreadable).
+    version: int
+    # Stepped from a state read back from the store (or from such an entry): this build's
+    # states of the stream are known to read back. A state first written here (a new stream)
+    # is read from the row once, so that one this build cannot read back is found at once.
+    verified: bool
 
 
 class HotStates:
@@ -61,14 +68,16 @@ class HotStates:
             entry = self._items.pop((actuator_pk, name), None)
             if entry is not None:
                 self._bytes -= len(entry.blob)
-            if entry is None or blob is None or entry.blob != blob or entry.raw_config != raw_config:
+            if (entry is None or blob is None or entry.blob != blob or entry.raw_config != raw_config
+                    or entry.version != ESTIMATORS[name].STATE_VERSION or not entry.verified):
                 self.misses += 1
                 return None
             self.hits += 1
             return entry.config, entry.state
 
     def put(
-        self, actuator_pk: int, name: str, blob: bytes, raw_config: Mapping[str, Any], config: Any, state: Any
+        self, actuator_pk: int, name: str, blob: bytes, raw_config: Mapping[str, Any], config: Any, state: Any,
+        *, verified: bool = True,
     ) -> None:
         """Remember the state just dumped to ``blob`` (before the commit: an entry whose commit
         fails no longer matches the row, and is not used)."""
@@ -78,7 +87,8 @@ class HotStates:
             old = self._items.pop((actuator_pk, name), None)
             if old is not None:
                 self._bytes -= len(old.blob)
-            self._items[(actuator_pk, name)] = _Entry(blob, dict(raw_config), config, state)
+            self._items[(actuator_pk, name)] = _Entry(blob, dict(raw_config), config, state,
+                                                      ESTIMATORS[name].STATE_VERSION, verified)
             self._bytes += len(blob)
             while len(self._items) > self.max_entries or self._bytes > self.max_bytes:
                 _, gone = self._items.popitem(last=False)

@@ -6,9 +6,9 @@ from __future__ import annotations
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
-from typing import Any
+from typing import Any, cast
 
-from sqlalchemy import bindparam, delete, func, insert, select, text, update
+from sqlalchemy import Table, bindparam, delete, func, insert, select, text, update
 from sqlalchemy.orm import Session
 
 from app.models import (
@@ -192,13 +192,16 @@ def estimators(session: Session, actuator_pk: int) -> list[EstimatorState]:
     )
 
 
-_INSERTS = tuple(insert(model) for model in OUTPUT_MODELS)
+# Core inserts on the tables (not the ORM's bulk insert of the models: the same rows and column
+# defaults, without its per-statement bookkeeping, which was most of an insert of a few rows).
+_INSERTS = tuple(insert(cast(Table, model.__table__)) for model in OUTPUT_MODELS)
 
 
 def insert_rows(session: Session, rows: Rows) -> None:
+    conn = session.connection()
     for items, stmt in zip((rows.health, rows.outputs, rows.events, rows.rul), _INSERTS, strict=True):
         if items:
-            session.execute(stmt, items)
+            conn.execute(stmt, items)
 
 
 def delete_outputs(session: Session, actuator_pk: int, estimator: str, baseline: int | None = None) -> None:

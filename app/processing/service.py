@@ -213,11 +213,16 @@ def apply_pending(
     if not taken:
         return None
     pending = _at_baseline_boundary(stream, est_rows, taken)
-    runners = [
+    held = [
         runner_of(hot, actuator_pk, er.estimator, er.config, er.state, er.status, tuple(er.reasons),
                   er.diagnosis_t_s, er.diagnosis)
-        or make_runner(er.estimator, er.config, er.state, er.status, er.reasons, er.diagnosis_t_s, er.diagnosis)
         for er in est_rows
+    ]
+    # Whether each state is known to read back: held, or read from the row now.
+    verified = [h is not None or er.state is not None for h, er in zip(held, est_rows, strict=True)]
+    runners = [
+        h or make_runner(er.estimator, er.config, er.state, er.status, er.reasons, er.diagnosis_t_s, er.diagnosis)
+        for h, er in zip(held, est_rows, strict=True)
     ]
     batches = _decode_pending(session, pending, recent)
     step = run_estimators(actuator_pk, runners, batches, store_outputs=store_outputs)
@@ -225,10 +230,10 @@ def apply_pending(
     now = utcnow()
     _label(step.rows, est_rows)
     repository.insert_rows(session, step.rows)
-    for er, runner in zip(est_rows, step.runners, strict=True):
+    for er, runner, known in zip(est_rows, step.runners, verified, strict=True):
         er.state = runner.kind.dump_state(runner.state)
         if hot is not None:
-            hot.put(actuator_pk, er.estimator, er.state, er.config, runner.config, runner.state)
+            hot.put(actuator_pk, er.estimator, er.state, er.config, runner.config, runner.state, verified=known)
         er.applied_seq = pending[-1].seq
         er.status, er.reasons = runner.status, list(runner.reasons)
         er.diagnosis_t_s, er.diagnosis = runner.diagnosis_t_s, runner.diagnosis
