@@ -170,7 +170,8 @@ class TelemetryBatch(Base):
     t_first_s: Mapped[float] = mapped_column(Float)
     t_last_s: Mapped[float] = mapped_column(Float)
     received_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
-    applied_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    # Applied when seq <= its stream's last_applied_seq (no per-batch stamp: on SQLite an update of
+    # the row rewrites its whole payload).
     # The client closed the run after this batch (part of the batch's identity).
     end_of_run: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
     payload: Mapped[bytes | None] = mapped_column(LargeBinary, nullable=True)

@@ -63,6 +63,8 @@ GOALS_SAMPLES_S = {"arrow": 1_000_000, "json": 300_000}
 GOAL_BYTES_PER_IDLE_STREAM = 2048
 PROG_SERVER_SAMPLES_S = "40-170"
 SAMPLE_RATE_HZ = 1000.0
+# How often the many-stream case looks whether every stream is applied (about 5 % of a 4-8 s run).
+FLEET_POLL_S = 0.1
 # Seed paper, Table 1, -40 lbs: V[k] = -a0 V[k-1] - a1 V[k-2] + b0 I[k] + b1 I[k-1] + b2 I[k-2].
 ARX_A = (1.0, -0.4998, -0.0343)
 ARX_B = (-0.7889, 5.9267, -3.5857)
@@ -78,10 +80,17 @@ class Row:
     ack_s: float
     applied_s: float
     encode_s: float = float("nan")
+    # CPU seconds the server process used during the case (user + system, all its threads).
+    server_cpu_s: float = float("nan")
 
     @property
     def samples_per_s(self) -> float:
         return self.samples / self.applied_s if self.applied_s > 0 else float("nan")
+
+    @property
+    def server_cpu_us_per_sample(self) -> float:
+        """Server CPU per sample: on a loaded shared machine far steadier than the rate."""
+        return 1e6 * self.server_cpu_s / self.samples if self.samples else float("nan")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -341,7 +350,9 @@ async def _bench_many_async(
                 break
             if time.monotonic() > deadline:
                 raise TimeoutError(f"{fmt}: streams not applied within {timeout_s:g} s")
-            await asyncio.sleep(0.02)
+            # Each look reads the whole fleet board: every 20 ms it took about 6 % of the
+            # server's CPU (py-spy) away from the batches being measured.
+            await asyncio.sleep(FLEET_POLL_S)
         return ack_s, time.perf_counter() - start
 
 
@@ -604,12 +615,15 @@ def run_backend(
             tail = f"BS-{run_id}"
             client.create_aircraft(tail)
             for fmt in args.formats if args.batches > 0 else ():
+                cpu0 = tree_cpu_s(server.process.pid)
                 row = bench_single(
                     client, backend, tail, fmt, args.batches, args.batch_samples, args.timeout_s
                 )
+                row.server_cpu_s = tree_cpu_s(server.process.pid) - cpu0
                 rows.append(row)
                 print(
-                    f"[{backend}] {row.case} {fmt}: {row.samples_per_s:,.0f} samples/s", flush=True
+                    f"[{backend}] {row.case} {fmt}: {row.samples_per_s:,.0f} samples/s, server CPU "
+                    f"{row.server_cpu_us_per_sample:.2f} us/sample", flush=True
                 )
 
         if args.streams > 0 and args.batches > 0:
@@ -617,6 +631,7 @@ def run_backend(
             with FleetHealthClient(server.url, server.api_key) as client:
                 client.create_aircraft(tail)
             for fmt in args.formats:
+                cpu0 = tree_cpu_s(server.process.pid)
                 row = bench_many(
                     server,
                     backend,
@@ -628,9 +643,11 @@ def run_backend(
                     args.concurrency,
                     args.timeout_s,
                 )
+                row.server_cpu_s = tree_cpu_s(server.process.pid) - cpu0
                 rows.append(row)
                 print(
-                    f"[{backend}] {row.case} {fmt}: {row.samples_per_s:,.0f} samples/s", flush=True
+                    f"[{backend}] {row.case} {fmt}: {row.samples_per_s:,.0f} samples/s, server CPU "
+                    f"{row.server_cpu_us_per_sample:.2f} us/sample", flush=True
                 )
     return {"rows": rows, "memory": memory, "rate": rate}
 
@@ -681,6 +698,15 @@ def print_table(results: dict[str, dict]) -> None:
         )
         print(f"{case:<14}{fmt:<8}{cells}{(f'{goal:,}' if goal else '-'):>14}")
     print()
+    print("Server CPU per sample, us (user + system of the server process during the case; the rate "
+          "above is what the machine gave, this is what each sample cost)")
+    print(f"{'case':<14}{'format':<8}" + "".join(f"{lab:>22}" for lab in labels))
+    for (case, fmt), by_label in keyed.items():
+        cells = "".join(
+            f"{by_label[lab].server_cpu_us_per_sample:>22.3f}" if lab in by_label else f"{'-':>22}" for lab in labels
+        )
+        print(f"{case:<14}{fmt:<8}{cells}")
+    print()
     for lab, result in results.items():
         memory = result["memory"]
         if memory:
@@ -699,6 +725,11 @@ def print_table(results: dict[str, dict]) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--pg", default=None, help="also run against this PostgreSQL URL")
+    parser.add_argument(
+        "--baseline-pg", default=None,
+        help="PostgreSQL URL of the --baseline run (default --pg); another database or schema "
+             "(?options=-csearch_path%%3Dname) when the two trees' migrations differ",
+    )
     parser.add_argument("--no-sqlite", action="store_true", help="skip the SQLite run")
     parser.add_argument("--formats", nargs="+", choices=FORMATS, default=list(FORMATS))
     parser.add_argument("--batch-samples", type=int, default=10_000)
@@ -738,7 +769,8 @@ def main(argv: list[str] | None = None) -> int:
                 url = f"sqlite:///{workdir / f'bench{suffix.strip()}.db'}"
                 results[f"sqlite{suffix}"] = run_backend(f"sqlite{suffix}", url, workdir, args, source)
             if args.pg:
-                results[f"postgres{suffix}"] = run_backend(f"postgres{suffix}", args.pg, workdir, args, source)
+                pg = args.baseline_pg if source is not None and args.baseline_pg else args.pg
+                results[f"postgres{suffix}"] = run_backend(f"postgres{suffix}", pg, workdir, args, source)
 
         # Base and new at the same time, so that whatever else loads the machine weighs on both
         # alike (one after the other, a change of load would read as a change of speed).
@@ -756,7 +788,9 @@ def main(argv: list[str] | None = None) -> int:
         args.json_out.parent.mkdir(parents=True, exist_ok=True)
         payload = {
             backend: {
-                "rows": [asdict(row) | {"samples_per_s": row.samples_per_s} for row in r["rows"]],
+                "rows": [asdict(row) | {"samples_per_s": row.samples_per_s,
+                                         "server_cpu_us_per_sample": row.server_cpu_us_per_sample}
+                         for row in r["rows"]],
                 "memory": r["memory"],
                 "rate": r.get("rate", {}),
             }

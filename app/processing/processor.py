@@ -51,6 +51,7 @@ from app.db import Database
 from app.errors import STORAGE_FAULTS
 from app.fleet import service as fleet
 from app.processing import repository, service
+from app.processing.hot import HotStates
 from app.processing.orchestration import StateUnreadable
 from app.processing.recent import RecentBatches
 from app.processing.service import ApplyResult
@@ -121,6 +122,8 @@ class Processor:
         self.db = db
         # Batches this process logged, decoded (the log writer fills it when this process applies).
         self.recent = RecentBatches() if settings.processor_enabled else None
+        # Estimator states this process stored last, parsed (checked against each row read).
+        self.hot = HotStates()
         self.settings = settings
         self.hub = hub or Hub()
         # PostgreSQL: the channel on which applies are announced to other processes.
@@ -168,6 +171,7 @@ class Processor:
         applied mark went back), and look at it again."""
         with self._applied_lock:
             self._applied.pop(actuator_pk, None)
+        self.hot.forget(actuator_pk)  # would not match the rewound rows anyway: free it now
         self._attempts.pop(actuator_pk, None)
         self._retry_at.pop(actuator_pk, None)
         self.notify(actuator_pk)
@@ -293,6 +297,7 @@ class Processor:
                                 recent=self.recent,
                                 ready_kinds=ready_kinds,
                                 loaded=loaded,
+                                hot=self.hot,
                             )
                     except Exception as exc:  # this stream's savepoint is rolled back
                         errors.append((pk, exc))

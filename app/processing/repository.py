@@ -6,9 +6,9 @@ from __future__ import annotations
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
-from typing import Any
+from typing import Any, cast
 
-from sqlalchemy import bindparam, delete, func, insert, select, text, update
+from sqlalchemy import Table, bindparam, delete, func, insert, select, text, update
 from sqlalchemy.orm import Session
 
 from app.models import (
@@ -76,12 +76,6 @@ _PENDING = (
 _PAYLOADS = select(TelemetryBatch.seq, TelemetryBatch.payload).where(
     TelemetryBatch.actuator_pk == bindparam("pk"), TelemetryBatch.seq.between(bindparam("lo"), bindparam("hi"))
 )
-_MARK_APPLIED = (
-    update(TelemetryBatch)
-    .where(TelemetryBatch.actuator_pk == bindparam("pk"), TelemetryBatch.seq.between(bindparam("lo"), bindparam("hi")))
-    .values(applied_at=bindparam("at"))
-    .execution_options(synchronize_session=False)
-)
 
 
 def claim_many(session: Session, actuator_pks: Sequence[int], *, is_sqlite: bool) -> dict[int, Stream]:
@@ -145,11 +139,6 @@ def payloads(session: Session, actuator_pk: int, seqs: Sequence[int]) -> dict[in
     return {int(seq): payload for seq, payload in rows if seq in wanted}
 
 
-def mark_batches_applied(session: Session, actuator_pk: int, first_seq: int, last_seq: int, at: datetime) -> None:
-    """Stamp the stream's batches first_seq..last_seq as applied (one statement)."""
-    session.execute(_MARK_APPLIED, {"pk": actuator_pk, "lo": first_seq, "hi": last_seq, "at": at})
-
-
 def claim(session: Session, actuator_pk: int, *, is_sqlite: bool) -> Stream | None:
     """Lock the stream for this transaction. None when another worker holds it (PostgreSQL:
     ``FOR UPDATE SKIP LOCKED``; on SQLite ``BEGIN IMMEDIATE`` already serializes writers)."""
@@ -203,13 +192,16 @@ def estimators(session: Session, actuator_pk: int) -> list[EstimatorState]:
     )
 
 
-_INSERTS = tuple(insert(model) for model in OUTPUT_MODELS)
+# Core inserts on the tables (not the ORM's bulk insert of the models: the same rows and column
+# defaults, without its per-statement bookkeeping, which was most of an insert of a few rows).
+_INSERTS = tuple(insert(cast(Table, model.__table__)) for model in OUTPUT_MODELS)
 
 
 def insert_rows(session: Session, rows: Rows) -> None:
+    conn = session.connection()
     for items, stmt in zip((rows.health, rows.outputs, rows.events, rows.rul), _INSERTS, strict=True):
         if items:
-            session.execute(stmt, items)
+            conn.execute(stmt, items)
 
 
 def delete_outputs(session: Session, actuator_pk: int, estimator: str, baseline: int | None = None) -> None:
@@ -304,16 +296,22 @@ def count_failed(session: Session) -> int:
 
 
 def drop_applied_payloads(session: Session, older_than_s: float) -> int:
-    """Retention: forget raw payloads of batches applied more than ``older_than_s`` ago."""
+    """Retention: forget the raw payloads of applied batches (seq at or before their stream's
+    applied mark) received more than ``older_than_s`` ago. A batch not applied yet keeps its
+    payload however old it is."""
     cutoff = datetime.fromtimestamp(utcnow().timestamp() - older_than_s, UTC)
+    applied_mark = (
+        select(Stream.last_applied_seq).where(Stream.actuator_pk == TelemetryBatch.actuator_pk).scalar_subquery()
+    )
     res = session.execute(
         update(TelemetryBatch)
         .where(
-            TelemetryBatch.applied_at.is_not(None),
-            TelemetryBatch.applied_at < cutoff,
+            TelemetryBatch.received_at < cutoff,
             TelemetryBatch.payload.is_not(None),
+            TelemetryBatch.seq <= applied_mark,
         )
         .values(payload=None)
+        .execution_options(synchronize_session=False)
     )
     return int(getattr(res, "rowcount", 0) or 0)
 

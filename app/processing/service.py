@@ -27,6 +27,7 @@ from app.models import (
     utcnow,
 )
 from app.processing import repository
+from app.processing.hot import HotStates, runner_of
 from app.processing.messages import (
     BatchResult,
     EstimatorResult,
@@ -178,9 +179,13 @@ def apply_pending(
     recent: RecentBatches | None = None,
     ready_kinds: frozenset[str] | None = None,
     loaded: GroupLoad | None = None,
+    hot: HotStates | None = None,
 ) -> ApplyResult | None:
     """Apply the next pending batches of one stream inside the caller's transaction: claim,
     load, run the estimators (pure), store outputs, states and the applied mark together.
+
+    ``hot`` holds the states this process stored last (used only when the rows read now
+    hold exactly those bytes, :mod:`app.processing.hot`).
 
     ``loaded`` is what :func:`load_group` read for a group of streams this one belongs to
     (loaded with the same ``max_batches``, in this transaction); without it the stream is
@@ -208,9 +213,16 @@ def apply_pending(
     if not taken:
         return None
     pending = _at_baseline_boundary(stream, est_rows, taken)
-    runners = [
-        make_runner(er.estimator, er.config, er.state, er.status, er.reasons, er.diagnosis_t_s, er.diagnosis)
+    held = [
+        runner_of(hot, actuator_pk, er.estimator, er.config, er.state, er.status, tuple(er.reasons),
+                  er.diagnosis_t_s, er.diagnosis)
         for er in est_rows
+    ]
+    # Whether each state is known to read back: held, or read from the row now.
+    verified = [h is not None or er.state is not None for h, er in zip(held, est_rows, strict=True)]
+    runners = [
+        h or make_runner(er.estimator, er.config, er.state, er.status, er.reasons, er.diagnosis_t_s, er.diagnosis)
+        for h, er in zip(held, est_rows, strict=True)
     ]
     batches = _decode_pending(session, pending, recent)
     step = run_estimators(actuator_pk, runners, batches, store_outputs=store_outputs)
@@ -218,9 +230,10 @@ def apply_pending(
     now = utcnow()
     _label(step.rows, est_rows)
     repository.insert_rows(session, step.rows)
-    repository.mark_batches_applied(session, actuator_pk, pending[0].seq, pending[-1].seq, now)
-    for er, runner in zip(est_rows, step.runners, strict=True):
+    for er, runner, known in zip(est_rows, step.runners, verified, strict=True):
         er.state = runner.kind.dump_state(runner.state)
+        if hot is not None:
+            hot.put(actuator_pk, er.estimator, er.state, er.config, runner.config, runner.state, verified=known)
         er.applied_seq = pending[-1].seq
         er.status, er.reasons = runner.status, list(runner.reasons)
         er.diagnosis_t_s, er.diagnosis = runner.diagnosis_t_s, runner.diagnosis

@@ -67,17 +67,15 @@ def delete_batches_after(session: Session, actuator_pk: int, seq: int) -> None:
 
 
 def reset_estimators(session: Session, actuator_pk: int) -> None:
-    """Every estimator of the stream back to its initial state, its outputs deleted, and every
-    kept batch marked not applied: the processor applies the log again from the first batch."""
+    """Every estimator of the stream back to its initial state, its outputs deleted: with the
+    stream's applied mark set back to 0 (by the caller), the processor applies the log again
+    from the first batch."""
     for model in OUTPUT_MODELS:
         session.execute(delete(model).where(model.actuator_pk == actuator_pk))
     session.execute(
         update(EstimatorState)
         .where(EstimatorState.actuator_pk == actuator_pk)
         .values(state=None, applied_seq=0, status="learning", reasons=[], diagnosis_t_s=None, diagnosis=None)
-    )
-    session.execute(
-        update(TelemetryBatch).where(TelemetryBatch.actuator_pk == actuator_pk).values(applied_at=None)
     )
 
 
