@@ -102,9 +102,11 @@ async def _lean_streams(url: str, key: str, tail: str, acts: list[str], frames: 
 
     headers = {"Authorization": f"Bearer {key}"}
     conns = []
-    for act in acts:  # one after the other: a thousand handshakes at once only time out
+    # One after the other (a thousand handshakes at once only time out); no keepalive pings of
+    # the client's (the server's own keep the connections checked).
+    for act in acts:
         ws = await connect(ws_url(url, f"{actuator_path(tail, act)}/stream"), additional_headers=headers,
-                           max_size=None, open_timeout=120)
+                           max_size=None, open_timeout=120, ping_interval=None)
         ready = orjson.loads(await ws.recv())
         assert ready["type"] == "ready", ready
         conns.append((ws, int(ready["max_inflight"])))
