@@ -9,8 +9,8 @@ attached):
 * many connections (``--streams``, and ``--many``, default 1,000; each to its own actuator, all
   at once): the same in aggregate. Every connection is open before the clock starts (the
   handshakes are not timed), and the clients are lean (frames encoded beforehand, the raw
-  ``websockets`` protocol, at most the server's ``max_inflight`` frames awaiting results per
-  connection) and spread over ``--client-procs`` processes, so that the server is what is
+  ``websockets`` protocol, at most ``--window`` frames awaiting results per connection,
+  default 4) and spread over ``--client-procs`` processes, so that the server is what is
   measured: the client's CPU per frame is printed beside the server's;
 * latency: from a frame sent to its result received, median and 99th percentile, for frames sent
   one at a time (nothing queued ahead of them), so it is the added latency of the path: parse,
@@ -94,10 +94,14 @@ def latency(url: str, key: str, tail: str, frames: Frames) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- many connections
-async def _lean_streams(url: str, key: str, tail: str, acts: list[str], frames: list[bytes],
+async def _lean_streams(url: str, key: str, tail: str, acts: list[str], frames: list[bytes], window: int,
                         pipe: Connection) -> tuple[float, float, float]:
     """Open every connection, tell the parent, wait for its go; then stream ``frames`` into
-    each, at most ``max_inflight`` awaiting their results. Returns (start, end, client CPU s)."""
+    each, at most ``window`` (and the server's ``max_inflight``) awaiting their results: a
+    thousand connections with 16 frames each in flight would fill the server's process-wide
+    read-ahead (8,192 frames; it stops reading, and a connection not read misses its keepalive
+    pongs), with 4 they stay below half of it (no ``slow_down``). Returns (start, end, client
+    CPU s)."""
     from websockets.asyncio.client import connect
 
     headers = {"Authorization": f"Bearer {key}"}
@@ -109,25 +113,21 @@ async def _lean_streams(url: str, key: str, tail: str, acts: list[str], frames: 
                            max_size=None, open_timeout=120, ping_interval=None)
         ready = orjson.loads(await ws.recv())
         assert ready["type"] == "ready", ready
-        conns.append((ws, int(ready["max_inflight"])))
+        conns.append((ws, min(window, int(ready["max_inflight"]))))
     pipe.send("open")
     pipe.recv()  # go
 
     async def one(ws: Any, window: int) -> None:
         results = 0
         sent = 0
-        while sent < min(window, len(frames)):
-            await ws.send(frames[sent])
-            sent += 1
         while results < len(frames):
+            while sent < len(frames) and sent - results < window:
+                await ws.send(frames[sent])
+                sent += 1
             msg = orjson.loads(await asyncio.wait_for(ws.recv(), 600))
-            kind = msg["type"]
-            if kind == "result":
+            if msg["type"] == "result":
                 results += 1
-                if sent < len(frames):
-                    await ws.send(frames[sent])
-                    sent += 1
-            elif kind == "error":
+            elif msg["type"] == "error":
                 raise RuntimeError(msg)
         await ws.close()
 
@@ -137,16 +137,17 @@ async def _lean_streams(url: str, key: str, tail: str, acts: list[str], frames: 
     return start, time.time(), time.process_time() - cpu0
 
 
-def _client_proc(url: str, key: str, tail: str, acts: list[str], frames: list[bytes], pipe: Connection) -> None:
+def _client_proc(url: str, key: str, tail: str, acts: list[str], frames: list[bytes], window: int,
+                 pipe: Connection) -> None:
     try:
-        pipe.send(asyncio.run(_lean_streams(url, key, tail, acts, frames, pipe)))
+        pipe.send(asyncio.run(_lean_streams(url, key, tail, acts, frames, window, pipe)))
     except BaseException as exc:
         pipe.send(exc)
         raise
 
 
 def many_connections(url: str, key: str, tail: str, n_streams: int, frames: Frames,
-                     n_procs: int) -> tuple[float, float]:
+                     n_procs: int, window: int) -> tuple[float, float]:
     """Wall seconds of the sending phase (first frame sent to last result received, over every
     client process) and client CPU seconds."""
     encoded = [encode_frame(i + 1, chans, t_s=t, binary=True) for i, (t, chans) in enumerate(frames)]
@@ -156,7 +157,7 @@ def many_connections(url: str, key: str, tail: str, n_streams: int, frames: Fram
     procs = []
     for p in range(n_procs):
         parent, child = ctx.Pipe()
-        proc = ctx.Process(target=_client_proc, args=(url, key, tail, acts[p::n_procs], encoded, child))
+        proc = ctx.Process(target=_client_proc, args=(url, key, tail, acts[p::n_procs], encoded, window, child))
         proc.start()
         procs.append((proc, parent))
     for _, pipe in procs:
@@ -195,7 +196,8 @@ def run_all(args: argparse.Namespace, source: Path | None) -> dict[str, float]:
                     dt, client_cpu = one_connection(url, key, tail, frames), float("nan")
                 else:
                     frames = frames[: args.frames_per_stream]
-                    dt, client_cpu = many_connections(url, key, tail, n_streams, frames, args.client_procs)
+                    dt, client_cpu = many_connections(url, key, tail, n_streams, frames, args.client_procs,
+                                                       args.window)
                 nf = n_streams * len(frames)
                 case = f"{size}x{n_streams}"
                 out[f"{case} frames/s"] = nf / dt
@@ -220,6 +222,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--many", type=int, default=1000, help="connections of the largest case")
     ap.add_argument("--frames-per-stream", type=int, default=20)
     ap.add_argument("--client-procs", type=int, default=2, help="client processes of the many-connection cases")
+    ap.add_argument("--window", type=int, default=4,
+                    help="frames awaiting results per connection in the many-connection cases")
     ap.add_argument("--ready-timeout-s", type=float, default=600.0)
     ap.add_argument(
         "--baseline", type=Path, default=None,

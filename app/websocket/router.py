@@ -342,7 +342,8 @@ class _StreamConn:
                 await _send(self.ws, self.lock, msg)
                 self.results_rate.tick()
                 self.window_free.set()
-            await self._flow()
+            if self._flow_due():
+                await self._flow()
             if self.inflight and self.failure is not None:
                 # Frames logged but never to be applied: say so instead of a silent wait.
                 await _refuse(
@@ -365,10 +366,19 @@ class _StreamConn:
             or self.budget.full()
         )
 
+    def _flow_due(self) -> bool:
+        """Whether :meth:`_flow` has a ``slow_down`` or ``resume`` to send."""
+        waiting = len(self.queue) + len(self.inflight)
+        high = self.settings.ws_slow_down_frames
+        if self.paused:
+            return waiting <= high // 2 and not self.budget.pressed()
+        return waiting >= high or self.budget.pressed()
+
     async def _flow(self) -> None:
         """Send ``slow_down`` when the frames waiting here (queued and in flight) reach
         ``ws_slow_down_frames`` or the process-wide queue is half full; ``resume`` once they
-        are back to half of it."""
+        are back to half of it. Callers check :meth:`_flow_due` first (it runs for every frame
+        read, logged and answered; most of the time there is nothing to send)."""
         waiting = len(self.queue) + len(self.inflight)
         high = self.settings.ws_slow_down_frames
         if not self.paused and (waiting >= high or self.budget.pressed()):
@@ -400,7 +410,8 @@ class _StreamConn:
             self.queued_bytes += len(data)
             self.budget.take(len(data))
             self.frame_added.set()
-            await self._flow()
+            if self._flow_due():
+                await self._flow()
 
     async def log_frames(self) -> None:
         window = self.settings.ws_max_inflight
@@ -419,7 +430,8 @@ class _StreamConn:
             self.space_free.set()
             if not await self._take_frame(data):
                 return
-            await self._flow()
+            if self._flow_due():
+                await self._flow()
 
     def release(self) -> None:
         """Give the frames still queued back to the process-wide budget (the connection ends;
@@ -468,7 +480,7 @@ class _StreamConn:
         self.inflight_added.set()
         if ack.seq in self.ready:  # applied and pushed before this acknowledgement was read
             self.sub.wakeup.set()
-        self.processor.notify(self.actuator_pk)
+        # No processor wake-up here: the log writer wakes it for every stream of each commit.
         await _send(
             self.ws,
             self.lock,
