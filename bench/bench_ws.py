@@ -147,9 +147,9 @@ def _client_proc(url: str, key: str, tail: str, acts: list[str], frames: list[by
 
 
 def many_connections(url: str, key: str, tail: str, n_streams: int, frames: Frames,
-                     n_procs: int, window: int) -> tuple[float, float]:
+                     n_procs: int, window: int, server_pid: int) -> tuple[float, float, float]:
     """Wall seconds of the sending phase (first frame sent to last result received, over every
-    client process) and client CPU seconds."""
+    client process), client and server CPU seconds of that phase (not of the handshakes)."""
     encoded = [encode_frame(i + 1, chans, t_s=t, binary=True) for i, (t, chans) in enumerate(frames)]
     assert all(isinstance(f, bytes) for f in encoded)
     acts = [f"a{k:04d}" for k in range(n_streams)]
@@ -164,15 +164,17 @@ def many_connections(url: str, key: str, tail: str, n_streams: int, frames: Fram
         got = pipe.recv()
         if isinstance(got, BaseException):
             raise got
+    cpu0 = tree_cpu_s(server_pid)
     for _, pipe in procs:
         pipe.send("go")
     outs = [pipe.recv() for _, pipe in procs]
+    server_cpu = tree_cpu_s(server_pid) - cpu0
     for proc, _ in procs:
         proc.join(60)
     for out in outs:
         if isinstance(out, BaseException):
             raise out
-    return max(o[1] for o in outs) - min(o[0] for o in outs), sum(o[2] for o in outs)
+    return max(o[1] for o in outs) - min(o[0] for o in outs), sum(o[2] for o in outs), server_cpu
 
 
 # ----------------------------------------------------------------------------- the cases
@@ -191,17 +193,19 @@ def run_all(args: argparse.Namespace, source: Path | None) -> dict[str, float]:
                 _setup(url, key, tail, n_streams)
                 t, chans = make_stream(size * n_frames, seed=size, t0=0.0)
                 frames = frames_of(t, chans, size)
-                cpu0 = tree_cpu_s(pid)
                 if n_streams == 1:
+                    cpu0 = tree_cpu_s(pid)
                     dt, client_cpu = one_connection(url, key, tail, frames), float("nan")
+                    server_cpu = tree_cpu_s(pid) - cpu0
                 else:
                     frames = frames[: args.frames_per_stream]
-                    dt, client_cpu = many_connections(url, key, tail, n_streams, frames, args.client_procs,
-                                                       args.window)
+                    dt, client_cpu, server_cpu = many_connections(
+                        url, key, tail, n_streams, frames, args.client_procs, args.window, pid
+                    )
                 nf = n_streams * len(frames)
                 case = f"{size}x{n_streams}"
                 out[f"{case} frames/s"] = nf / dt
-                out[f"{case} server CPU ms/frame"] = 1e3 * (tree_cpu_s(pid) - cpu0) / nf
+                out[f"{case} server CPU ms/frame"] = 1e3 * server_cpu / nf
                 if n_streams > 1:
                     out[f"{case} client CPU ms/frame"] = 1e3 * client_cpu / nf
                 print(f"  [{label}] {size}-sample frames, {n_streams} connections: {nf / dt:,.0f} frames/s",
