@@ -219,16 +219,19 @@ class RateMeter:
         return round((len(self.times) - 1) / span, 3) if span > 0 else None
 
 
-def _parse_pool(ws: WebSocket) -> Executor:
-    """The threads that parse streamed frames, shared by every connection of the app: a
-    hand-over cheaper than the generic thread pool's (no capacity limiter, no checkpoint),
-    answered through the loop's :class:`~app.websocket.hub.Inbox` (one wake-up per burst)."""
-    pool: Executor | None = getattr(ws.app.state, "ws_parse_pool", None)
-    if pool is None:
-        pool = ws.app.state.ws_parse_pool = ThreadPoolExecutor(
-            max_workers=min(4, os.cpu_count() or 1), thread_name_prefix="fleethealth-ws-parse"
-        )
-    return pool
+_PARSE_POOL: Executor | None = None
+
+
+def _parse_pool() -> Executor:
+    """The threads that parse streamed frames, shared by every connection of the process (made
+    on first use; idle threads cost nothing): a hand-over cheaper than the generic thread
+    pool's (no capacity limiter, no checkpoint), answered through the loop's
+    :class:`~app.websocket.hub.Inbox` (one wake-up per burst)."""
+    global _PARSE_POOL
+    if _PARSE_POOL is None:
+        _PARSE_POOL = ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1),
+                                         thread_name_prefix="fleethealth-ws-parse")
+    return _PARSE_POOL
 
 
 def _frame_budget(ws: WebSocket, settings: Settings) -> FrameBudget:
@@ -526,7 +529,7 @@ async def stream(ws: WebSocket, tail: str, actuator_id: str) -> None:
         budget=_frame_budget(ws, settings),
         sent_seq=start.last_applied_seq,
         writer=ws.app.state.log_writer,
-        parse_pool=_parse_pool(ws),
+        parse_pool=_parse_pool(),
         box=inbox(asyncio.get_running_loop()),
         limits=BatchLimits.from_settings(settings),
     )
