@@ -93,6 +93,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         ws_max_size=s.ws_max_frame_bytes,
         ws_ping_interval=s.ws_ping_interval_s,
         ws_ping_timeout=s.ws_ping_timeout_s,
+        ws_per_message_deflate=s.ws_per_message_deflate,
         timeout_graceful_shutdown=math.ceil(s.shutdown_timeout_s),
     )
     server = uvicorn.Server(config) if feeder is None else _demo_server(config, feeder)

@@ -84,6 +84,10 @@ class Settings(BaseSettings):
     # within the timeout is dropped.
     ws_ping_interval_s: float = Field(default=20.0, gt=0)
     ws_ping_timeout_s: float = Field(default=20.0, gt=0)
+    # permessage-deflate on WebSockets, when a client offers it. Off by default: telemetry
+    # frames (Arrow, float64) barely compress, and deflating every small ack and result costs
+    # more CPU than it saves bytes on a LAN (docs/benchmarks.md, "WebSocket streaming").
+    ws_per_message_deflate: bool = False
     ws_result_poll_s: float = Field(default=1.0, gt=0)
     # How often an open WebSocket re-reads its key: a revoked key or a lost scope closes the
     # connection (1008) within this time, whichever process revoked it.

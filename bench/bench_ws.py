@@ -4,8 +4,14 @@ Measured, per frame size (samples per frame; two channels, ``current`` and ``vol
 attached):
 
 * one connection: frames per second and samples per second from the first frame sent until the
-  result of the last one is received (every frame logged durably, applied, result pushed back);
-* many connections (``--streams``, each to its own actuator, all at once): the same in aggregate;
+  result of the last one is received (every frame logged durably, applied, result pushed back),
+  with the library's :class:`~fleethealth_client.FrameStreamer`;
+* many connections (``--streams``, and ``--many``, default 1,000; each to its own actuator, all
+  at once): the same in aggregate. Every connection is open before the clock starts (the
+  handshakes are not timed), and the clients are lean (frames encoded beforehand, the raw
+  ``websockets`` protocol, at most ``--window`` frames awaiting results per connection,
+  default 4) and spread over ``--client-procs`` processes, so that the server is what is
+  measured: the client's CPU per frame is printed beside the server's;
 * latency: from a frame sent to its result received, median and 99th percentile, for frames sent
   one at a time (nothing queued ahead of them), so it is the added latency of the path: parse,
   durable append (fsync), apply, commit, push.
@@ -16,58 +22,65 @@ Usage::
     .venv/bin/python bench/bench_ws.py --quick
     git worktree add /tmp/base main && .venv/bin/python bench/bench_ws.py --baseline /tmp/base
 
-Figures are printed; nothing is asserted.
+With ``--baseline`` both servers run at once (and each side's clients in their own processes),
+so that they share whatever else loads the machine alike. Figures are printed; nothing is
+asserted.
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import multiprocessing as mp
 import sys
 import tempfile
+import threading
 import time
+from multiprocessing.connection import Connection
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import orjson
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 from bench_ingest import make_stream, running_server, tree_cpu_s  # noqa: E402
-from fleethealth_client import FleetHealthClient, FrameStreamer, frames_of  # noqa: E402
+from fleethealth_client import FleetHealthClient, FrameStreamer, encode_frame, frames_of  # noqa: E402
+from fleethealth_client.paths import actuator_path, ws_url  # noqa: E402
 
 FAKF = {"fakf": {"identification_samples": 1000, "health_window_samples": 1000}}
+Frames = list[tuple[Any, dict[str, Any]]]
 
 
 def _setup(url: str, key: str, tail: str, n: int) -> None:
     with FleetHealthClient(url, key) as client:
         client.create_aircraft(tail)
         for k in range(n):
-            client.create_actuator(tail, f"a{k:03d}", estimators=FAKF)
+            client.create_actuator(tail, f"a{k:04d}", estimators=FAKF)
 
 
-async def _stream(url: str, key: str, tail: str, act: str, frames: list, binary: bool) -> None:  # type: ignore[type-arg]
-    async with FrameStreamer(url, key, tail, act, binary=binary) as fs:
+# ----------------------------------------------------------------------------- one connection
+async def _stream(url: str, key: str, tail: str, act: str, frames: Frames) -> None:
+    async with FrameStreamer(url, key, tail, act, binary=True) as fs:
         for t, chans in frames:
             await fs.send(chans, t_s=t)
         await fs.drain(600)
         assert len(fs.stats.results) == len(frames), "results missing"
 
 
-def throughput(url: str, key: str, tail: str, n_streams: int, frames: list, binary: bool) -> float:  # type: ignore[type-arg]
-    async def run() -> None:
-        await asyncio.gather(*(_stream(url, key, tail, f"a{k:03d}", frames, binary) for k in range(n_streams)))
-
+def one_connection(url: str, key: str, tail: str, frames: Frames) -> float:
     t0 = time.perf_counter()
-    asyncio.run(run())
+    asyncio.run(_stream(url, key, tail, "a0000", frames))
     return time.perf_counter() - t0
 
 
-def latency(url: str, key: str, tail: str, frames: list) -> np.ndarray:  # type: ignore[type-arg]
+def latency(url: str, key: str, tail: str, frames: Frames) -> np.ndarray:
     async def run() -> list[float]:
         out = []
-        async with FrameStreamer(url, key, tail, "a000", binary=True) as fs:
+        async with FrameStreamer(url, key, tail, "a0000", binary=True) as fs:
             for t, chans in frames:
                 n = len(fs.stats.results)
                 t0 = time.perf_counter()
@@ -80,31 +93,123 @@ def latency(url: str, key: str, tail: str, frames: list) -> np.ndarray:  # type:
     return np.asarray(asyncio.run(run()))
 
 
+# ----------------------------------------------------------------------------- many connections
+async def _lean_streams(url: str, key: str, tail: str, acts: list[str], frames: list[bytes], window: int,
+                        pipe: Connection) -> tuple[float, float, float]:
+    """Open every connection, tell the parent, wait for its go; then stream ``frames`` into
+    each, at most ``window`` (and the server's ``max_inflight``) awaiting their results: a
+    thousand connections with 16 frames each in flight would fill the server's process-wide
+    read-ahead (8,192 frames; it stops reading, and a connection not read misses its keepalive
+    pongs), with 4 they stay below half of it (no ``slow_down``). Returns (start, end, client
+    CPU s)."""
+    from websockets.asyncio.client import connect
+
+    headers = {"Authorization": f"Bearer {key}"}
+    conns = []
+    # One after the other (a thousand handshakes at once only time out); no keepalive pings of
+    # the client's (the server's own keep the connections checked).
+    for act in acts:
+        ws = await connect(ws_url(url, f"{actuator_path(tail, act)}/stream"), additional_headers=headers,
+                           max_size=None, open_timeout=120, ping_interval=None)
+        ready = orjson.loads(await ws.recv())
+        assert ready["type"] == "ready", ready
+        conns.append((ws, min(window, int(ready["max_inflight"]))))
+    pipe.send("open")
+    pipe.recv()  # go
+
+    async def one(ws: Any, window: int) -> None:
+        results = 0
+        sent = 0
+        while results < len(frames):
+            while sent < len(frames) and sent - results < window:
+                await ws.send(frames[sent])
+                sent += 1
+            msg = orjson.loads(await asyncio.wait_for(ws.recv(), 600))
+            if msg["type"] == "result":
+                results += 1
+            elif msg["type"] == "error":
+                raise RuntimeError(msg)
+        await ws.close()
+
+    cpu0 = time.process_time()
+    start = time.time()
+    await asyncio.gather(*(one(ws, w) for ws, w in conns))
+    return start, time.time(), time.process_time() - cpu0
+
+
+def _client_proc(url: str, key: str, tail: str, acts: list[str], frames: list[bytes], window: int,
+                 pipe: Connection) -> None:
+    try:
+        pipe.send(asyncio.run(_lean_streams(url, key, tail, acts, frames, window, pipe)))
+    except BaseException as exc:
+        pipe.send(exc)
+        raise
+
+
+def many_connections(url: str, key: str, tail: str, n_streams: int, frames: Frames,
+                     n_procs: int, window: int, server_pid: int) -> tuple[float, float, float]:
+    """Wall seconds of the sending phase (first frame sent to last result received, over every
+    client process), client and server CPU seconds of that phase (not of the handshakes)."""
+    encoded = [encode_frame(i + 1, chans, t_s=t, binary=True) for i, (t, chans) in enumerate(frames)]
+    assert all(isinstance(f, bytes) for f in encoded)
+    acts = [f"a{k:04d}" for k in range(n_streams)]
+    ctx = mp.get_context("spawn")
+    procs = []
+    for p in range(n_procs):
+        parent, child = ctx.Pipe()
+        proc = ctx.Process(target=_client_proc, args=(url, key, tail, acts[p::n_procs], encoded, window, child))
+        proc.start()
+        procs.append((proc, parent))
+    for _, pipe in procs:
+        got = pipe.recv()
+        if isinstance(got, BaseException):
+            raise got
+    cpu0 = tree_cpu_s(server_pid)
+    for _, pipe in procs:
+        pipe.send("go")
+    outs = [pipe.recv() for _, pipe in procs]
+    server_cpu = tree_cpu_s(server_pid) - cpu0
+    for proc, _ in procs:
+        proc.join(60)
+    for out in outs:
+        if isinstance(out, BaseException):
+            raise out
+    return max(o[1] for o in outs) - min(o[0] for o in outs), sum(o[2] for o in outs), server_cpu
+
+
+# ----------------------------------------------------------------------------- the cases
 def run_all(args: argparse.Namespace, source: Path | None) -> dict[str, float]:
     """Every case against one server (this checkout, or the ``source`` tree)."""
     n_frames = 100 if args.quick else 400
+    label = "base" if source else "new"
     out: dict[str, float] = {}
     with tempfile.TemporaryDirectory() as tmp:
         url_db = f"sqlite:///{Path(tmp) / 'ws.db'}"
         with running_server(url_db, Path(tmp), args.ready_timeout_s, source=source) as server:
             url, key, pid = server.url, server.api_key, server.process.pid
-            for size in (10, 1000):
-                for n_streams in (1, args.streams):
-                    if size == 1000 and n_streams > 1:
-                        continue
-                    tail = f"T{size}x{n_streams}"
-                    _setup(url, key, tail, n_streams)
-                    t, chans = make_stream(size * n_frames, seed=size, t0=0.0)
-                    frames = frames_of(t, chans, size)
-                    if n_streams > 1:
-                        frames = frames[: args.frames_per_stream]
+            cases = [(10, 1), (10, args.streams), (10, args.many), (1000, 1)]
+            for size, n_streams in cases:
+                tail = f"T{size}x{n_streams}"
+                _setup(url, key, tail, n_streams)
+                t, chans = make_stream(size * n_frames, seed=size, t0=0.0)
+                frames = frames_of(t, chans, size)
+                if n_streams == 1:
                     cpu0 = tree_cpu_s(pid)
-                    dt = throughput(url, key, tail, n_streams, frames, binary=True)
-                    nf = n_streams * len(frames)
-                    out[f"{size}x{n_streams} frames/s"] = nf / dt
-                    out[f"{size}x{n_streams} server CPU ms/frame"] = 1e3 * (tree_cpu_s(pid) - cpu0) / nf
-                    print(f"  [{'base' if source else 'new'}] {size}-sample frames, {n_streams} connections: "
-                          f"{nf / dt:,.0f} frames/s", flush=True)
+                    dt, client_cpu = one_connection(url, key, tail, frames), float("nan")
+                    server_cpu = tree_cpu_s(pid) - cpu0
+                else:
+                    frames = frames[: args.frames_per_stream]
+                    dt, client_cpu, server_cpu = many_connections(
+                        url, key, tail, n_streams, frames, args.client_procs, args.window, pid
+                    )
+                nf = n_streams * len(frames)
+                case = f"{size}x{n_streams}"
+                out[f"{case} frames/s"] = nf / dt
+                out[f"{case} server CPU ms/frame"] = 1e3 * server_cpu / nf
+                if n_streams > 1:
+                    out[f"{case} client CPU ms/frame"] = 1e3 * client_cpu / nf
+                print(f"  [{label}] {size}-sample frames, {n_streams} connections: {nf / dt:,.0f} frames/s",
+                      flush=True)
             tail = "L10"
             _setup(url, key, tail, 1)
             t, chans = make_stream(10 * 200, seed=7, t0=0.0)
@@ -118,7 +223,11 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--streams", type=int, default=200, help="connections of the many-connection case")
+    ap.add_argument("--many", type=int, default=1000, help="connections of the largest case")
     ap.add_argument("--frames-per-stream", type=int, default=20)
+    ap.add_argument("--client-procs", type=int, default=2, help="client processes of the many-connection cases")
+    ap.add_argument("--window", type=int, default=4,
+                    help="frames awaiting results per connection in the many-connection cases")
     ap.add_argument("--ready-timeout-s", type=float, default=600.0)
     ap.add_argument(
         "--baseline", type=Path, default=None,
@@ -131,8 +240,6 @@ def main(argv: list[str] | None = None) -> int:
     else:
         # Both at once, so that they share whatever else loads the machine alike (run one after
         # the other, a change of load between the runs shows as a change of speed).
-        import threading
-
         def one(label: str, source: Path | None) -> None:
             runs[label] = run_all(args, source)
 
@@ -149,7 +256,8 @@ def main(argv: list[str] | None = None) -> int:
     for case in runs["new"]:
         print(f"{case:<44}" + "".join(f"{runs[lab].get(case, float('nan')):>14,.2f}" for lab in labels))
     print("Goals: >= 10,000 frames/s of 10-sample frames over 1,000 connections; frame to result "
-          "median <= 5 ms at light load. Server CPU = user + system seconds of the server process.")
+          "median <= 5 ms at light load. Server CPU = user + system seconds of the server process; "
+          "client CPU = the client processes' (both sides' clients are this checkout's).")
     return 0
 
 

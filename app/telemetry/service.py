@@ -1,9 +1,9 @@
 """The telemetry log: durable, idempotent, ordered append of batches.
 
 :func:`log_batch` holds the rules and is the one way into the log, for REST batches
-(:func:`ingest_body`) and streamed frames (:func:`ingest_frame`). Both return only once their
-append is committed, by the log writer's group commit (:mod:`app.telemetry.writer`): an
-acknowledgement means the batch is durable.
+(:func:`ingest_body`) and streamed frames (:func:`prepare_frame`, then the writer). Both are
+acknowledged only once their append is committed, by the log writer's group commit
+(:mod:`app.telemetry.writer`): an acknowledgement means the batch is durable.
 """
 
 from __future__ import annotations
@@ -222,31 +222,17 @@ async def ingest_body(
             await run_in_threadpool(release_memory)
 
 
-def _prepare_frame(
-    data: str | bytes, channels: list[str], max_samples: int, limits: BatchLimits
+def prepare_frame(
+    data: str | bytes, channels: Sequence[str], max_samples: int, limits: BatchLimits = DEFAULT_LIMITS
 ) -> tuple[int, ParsedBatch]:
+    """Parse and check a WebSocket frame (blocking): ``(client_seq, batch)``, ready for
+    :meth:`LogWriter.submit <app.telemetry.writer.LogWriter.submit>`.
+
+    The same value checks as a REST batch (:func:`app.telemetry.validation.check_batch`). Which
+    thread runs it, and how the commit's acknowledgement reaches the event loop, is the stream
+    connection's choice (:mod:`app.websocket.router`): both are per-frame costs there.
+    """
     with decoding_guard():
-        client_seq, parsed = parse_frame(data, channels, max_samples, limits.max_decoded_bytes)
+        client_seq, parsed = parse_frame(data, list(channels), max_samples, limits.max_decoded_bytes)
     check_batch(parsed, limits)
     return client_seq, parsed
-
-
-async def ingest_frame(
-    writer: LogWriter,
-    actuator_pk: int,
-    channels: list[str],
-    data: str | bytes,
-    max_samples: int,
-    limits: BatchLimits = DEFAULT_LIMITS,
-) -> tuple[int, Ack]:
-    """Parse a WebSocket frame and log it; returns ``(client_seq, ack)`` once the append is
-    committed.
-
-    The same value checks as a REST batch (:func:`app.telemetry.validation.check_batch`). Even a
-    small frame is parsed in a worker thread: the decoders release and re-take the GIL, and in
-    the event loop each re-take waits behind the busy writer and processor threads (measured:
-    a third fewer frames per second on one connection).
-    """
-    client_seq, parsed = await run_in_threadpool(_prepare_frame, data, channels, max_samples, limits)
-    ack = await asyncio.wrap_future(writer.submit(actuator_pk, parsed))
-    return client_seq, ack

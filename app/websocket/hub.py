@@ -8,7 +8,9 @@ wake-up listener (:mod:`app.processing.wakeups`) feeds the same hub from their n
 :meth:`Hub.publish_fleet` relays the fleet events the worker computed, and
 :meth:`Hub.mark_applied` resolves waiters. Publishing never blocks the processor: each subscriber has a bounded queue, filled
 with ``loop.call_soon_threadsafe``; a subscriber whose queue is full is marked ``overflowed``
-and its connection closes it (a slow consumer is dropped, never waited for).
+and its connection closes it (a slow consumer is dropped, never waited for). Every hand-over to a
+loop goes through that loop's :class:`Inbox`: one ``call_soon_threadsafe`` (one wake-up of the
+loop) per burst, however many subscribers and results it carries.
 
 Fleet events (JSON objects with a ``type``):
 
@@ -22,11 +24,13 @@ Fleet events (JSON objects with a ``type``):
 from __future__ import annotations
 
 import asyncio
-import contextlib
+import logging
 import threading
+import weakref
 from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import Future
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 if TYPE_CHECKING:
     from app.processing.service import ApplyResult
@@ -36,6 +40,86 @@ FLEET_EVENT_KINDS = frozenset(
 )
 DEFAULT_FLEET_TYPES = frozenset({"status_changed", *FLEET_EVENT_KINDS})
 ALL_FLEET_TYPES = frozenset({*DEFAULT_FLEET_TYPES, "applied"})
+
+
+log = logging.getLogger("fleethealth.hub")
+T = TypeVar("T")
+
+
+class Inbox:
+    """Calls handed to one event loop from other threads, run there in batches.
+
+    ``loop.call_soon_threadsafe`` writes to the loop's self-pipe and wakes it once per call; a
+    group commit of 200 frames, or a group apply of 200 streams, would wake it 200 times, each
+    wake-up a hand-over of the GIL. :meth:`put` queues the call and schedules one run of the
+    queue only when none is pending: the calls of a burst are run together, in order.
+    """
+
+    def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
+        self.loop = loop
+        self._calls: list[tuple[Callable[..., None], tuple[Any, ...]]] = []
+        self._lock = threading.Lock()
+        self._scheduled = False
+
+    def put(self, fn: Callable[..., None], *args: Any) -> None:
+        """Call ``fn(*args)`` in the loop soon (any thread; never blocks on the loop)."""
+        with self._lock:
+            self._calls.append((fn, args))
+            if self._scheduled:
+                return
+            self._scheduled = True
+        try:
+            self.loop.call_soon_threadsafe(self._run)
+        except RuntimeError:  # the loop is closed: its subscribers and waiters are gone
+            with self._lock:
+                self._calls.clear()
+                self._scheduled = False
+
+    def wrap(self, fut: Future[T]) -> asyncio.Future[T]:
+        """An awaitable of a thread's future, as ``asyncio.wrap_future`` but resolved through
+        this inbox (call it in the loop). Cancelling the awaitable leaves ``fut`` alone: what it
+        stands for (an append being committed) completes anyway."""
+        out: asyncio.Future[T] = self.loop.create_future()
+        fut.add_done_callback(lambda done: self.put(_copy_outcome, done, out))
+        return out
+
+    def _run(self) -> None:
+        with self._lock:
+            calls, self._calls = self._calls, []
+            self._scheduled = False
+        for fn, args in calls:
+            try:
+                fn(*args)
+            except Exception:  # one bad call must not lose the others of its burst
+                log.exception("a call handed to the event loop failed")
+
+
+def _copy_outcome(src: Future[T], dst: asyncio.Future[T]) -> None:
+    if dst.done():  # cancelled: its awaiter is gone
+        return
+    if src.cancelled():
+        dst.cancel()
+        return
+    exc = src.exception()
+    if exc is not None:
+        dst.set_exception(exc)
+    else:
+        dst.set_result(src.result())
+
+
+_inboxes: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, Inbox] = weakref.WeakKeyDictionary()
+_inboxes_lock = threading.Lock()
+
+
+def inbox(loop: asyncio.AbstractEventLoop) -> Inbox:
+    """The :class:`Inbox` of ``loop`` (one per loop, made on first use)."""
+    box = _inboxes.get(loop)
+    if box is None:
+        with _inboxes_lock:
+            box = _inboxes.get(loop)
+            if box is None:
+                box = _inboxes[loop] = Inbox(loop)
+    return box
 
 
 @dataclass(frozen=True)
@@ -81,9 +165,7 @@ class Subscription:
     def offer(self, item: Any) -> None:
         """Called from any thread; never blocks."""
         if self.accept(item):
-            # A closed loop means the subscriber is gone.
-            with contextlib.suppress(RuntimeError):
-                self.loop.call_soon_threadsafe(self._offer, item)
+            inbox(self.loop).put(self._offer, item)
 
 
 @dataclass(eq=False)
@@ -147,8 +229,7 @@ class Hub:
             if not ws:
                 del self._waiters[actuator_pk]
         for w, o in done:
-            with contextlib.suppress(RuntimeError):  # the waiter's loop is closed: it is gone
-                w.future.get_loop().call_soon_threadsafe(_set_once, w.future, o)
+            inbox(w.future.get_loop()).put(_set_once, w.future, o)
 
     def watched_streams(self) -> list[int]:
         with self._lock:
@@ -166,8 +247,7 @@ class Hub:
         with self._lock:
             subs = list(self._streams.get(actuator_pk, ()))
         for sub in subs:
-            with contextlib.suppress(RuntimeError):
-                sub.loop.call_soon_threadsafe(sub._mark_stale)
+            inbox(sub.loop).put(sub._mark_stale)
 
     # ------------------------------------------------------------------ subscriptions
     def subscribe_stream(self, actuator_pk: int, maxsize: int) -> Subscription:

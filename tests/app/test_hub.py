@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import threading
+from concurrent.futures import Future
 
 import numpy as np
 import pytest
@@ -14,7 +15,7 @@ from app.errors import InvalidBatch
 from app.ingest import UnsupportedFrame, client_seq_of, frame_batch_id, parse_frame
 from app.processing import ApplyResult
 from app.processing.messages import BatchResult, EstimatorResult
-from app.websocket.hub import Hub, StreamMeta, fleet_events, public
+from app.websocket.hub import Hub, Inbox, StreamMeta, fleet_events, inbox, public
 
 
 def _applied(seq: int, status: str, events: list[dict] | None = None) -> BatchResult:  # type: ignore[type-arg]
@@ -140,3 +141,76 @@ def test_a_wake_only_subscription_is_woken_by_its_operators_logged_events_only()
         return out
 
     assert asyncio.run(run()) == [(False, 0), (False, 0), (True, 0)]
+
+
+def test_an_inbox_wakes_its_loop_once_per_burst_and_runs_every_call_in_order() -> None:
+    loop = asyncio.new_event_loop()
+    try:
+        wakeups = []
+        real = loop.call_soon_threadsafe
+
+        def counting(*args):  # type: ignore[no-untyped-def]
+            wakeups.append(args)
+            return real(*args)
+
+        loop.call_soon_threadsafe = counting  # type: ignore[method-assign]
+        box = Inbox(loop)
+        ran: list[int] = []
+
+        def burst(first: int) -> None:
+            for k in range(first, first + 100):
+                box.put(ran.append, k)
+
+        # A burst from another thread while the loop runs nothing: one wake-up for all of it.
+        t = threading.Thread(target=burst, args=(0,))
+        t.start()
+        t.join()
+        assert len(wakeups) == 1
+        loop.run_until_complete(asyncio.sleep(0))
+        assert ran == list(range(100))
+        # Once run, the next burst schedules a new run.
+        burst(100)
+        loop.run_until_complete(asyncio.sleep(0))
+        assert len(wakeups) == 2 and ran == list(range(200))
+    finally:
+        loop.close()
+    # A closed loop (its subscribers are gone) takes calls without raising, and drops them.
+    box.put(ran.append, -1)
+    assert ran == list(range(200))
+
+
+def test_a_failing_call_does_not_lose_the_rest_of_its_burst() -> None:
+    async def run() -> list[int]:
+        box = inbox(asyncio.get_running_loop())
+        assert inbox(asyncio.get_running_loop()) is box  # one per loop
+        ran: list[int] = []
+        done = asyncio.Event()
+        box.put(ran.append, 1)
+        box.put(lambda: 1 / 0)
+        box.put(ran.append, 2)
+        box.put(done.set)
+        await asyncio.wait_for(done.wait(), 30)
+        return ran
+
+    assert asyncio.run(run()) == [1, 2]
+
+
+def test_inbox_wrap_hands_over_results_and_errors_of_other_threads_futures() -> None:
+    async def run() -> tuple[int, str, bool]:
+        box = inbox(asyncio.get_running_loop())
+        ok: Future[int] = Future()
+        bad: Future[int] = Future()
+        left: Future[int] = Future()
+        got_ok, got_bad, got_left = box.wrap(ok), box.wrap(bad), box.wrap(left)
+        got_left.cancel()  # its awaiter went away: the thread's future is left alone
+        t = threading.Thread(target=lambda: (ok.set_result(7), bad.set_exception(InvalidBatch("no")),
+                                             left.set_result(1)))
+        t.start()
+        t.join()
+        value = await asyncio.wait_for(got_ok, 30)
+        with pytest.raises(InvalidBatch) as err:
+            await asyncio.wait_for(got_bad, 30)
+        await asyncio.sleep(0)
+        return value, err.value.detail, left.result() == 1 and got_left.cancelled()
+
+    assert asyncio.run(run()) == (7, "no", True)

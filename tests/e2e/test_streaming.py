@@ -529,3 +529,34 @@ def test_hundreds_of_concurrent_streams(live_server: LiveServer) -> None:
     fleet = httpx.get(f"{server.url}/v1/fleet/health", headers=server.headers, timeout=30).json()
     many = next(a for a in fleet["aircraft"] if a["tail"] == "MANY")
     assert {a["last_applied_seq"] for a in many["actuators"]} == {n_frames}
+
+
+def test_permessage_deflate_is_off_unless_configured(live_server: LiveServer) -> None:
+    """The client offers permessage-deflate (websockets does by default); the server takes it
+    only when ``FLEETHEALTH_WS_PER_MESSAGE_DEFLATE`` is on, and streams alike either way."""
+    server = live_server
+    _setup(server, "defl")
+    series = make_series(2 * FRAME, seed=9)
+    frames = _frames(series)
+    url = ws_url(server.url, f"/v1/aircraft/{TAIL}/actuators/defl/stream")
+
+    async def one_frame(client_seq: int) -> tuple[str | None, list[str]]:
+        async with connect(url, additional_headers=server.headers) as ws:
+            extensions = ws.response.headers.get("Sec-WebSocket-Extensions")
+            assert orjson.loads(await asyncio.wait_for(ws.recv(), 30))["type"] == "ready"
+            t, c = frames[client_seq - 1]
+            await ws.send(encode_frame(client_seq, c, t_s=t, binary=True))
+            kinds: list[str] = []
+            while "result" not in kinds:
+                kinds.append(orjson.loads(await asyncio.wait_for(ws.recv(), 60))["type"])
+            return extensions, kinds
+
+    extensions, kinds = asyncio.run(one_frame(1))
+    assert extensions is None and kinds == ["logged", "result"]
+
+    server.stop()
+    server.extra_env["FLEETHEALTH_WS_PER_MESSAGE_DEFLATE"] = "true"
+    server.start()
+    extensions, kinds = asyncio.run(one_frame(2))
+    assert extensions is not None and "permessage-deflate" in extensions
+    assert kinds == ["logged", "result"]
