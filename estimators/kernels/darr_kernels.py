@@ -1015,7 +1015,7 @@ def darr_batch(
     alpha_row0 = fused_row0 + n_fused
 
     events = np.empty((4, EV_LEN))
-    n_ev = np.int64(0)  # typed, not the literal 0, so _push compiles once
+    n_ev: int = np.int64(0)  # type: ignore[assignment]  # typed, not the literal 0: _push compiles once
     windows = np.empty((int(n // health_n) + 1, WIN_LEN))
     n_wo = 0
     sig = np.empty((N_CHAN, MAX_ORDER + 1))
