@@ -1905,3 +1905,191 @@ def rul_times(
             memo,
         )
     return times
+
+
+TABLE_NODES = 33  # probes of the per-period change over [ln alpha_f, ln alpha_top]
+TABLE_PAD = 0.2  # the top probe starts this far above the largest ln alpha of the samples
+TABLE_MIN_PERIODS = 8.0  # shorter lives are propagated period by period (time_to_failure)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _interval_of(xs: FloatArray, x: float) -> int:
+    """Index k with xs[k] <= x < xs[k + 1] (clamped to the ends) for increasing ``xs``."""
+    lo = 0
+    hi = xs.shape[0] - 1
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if xs[mid] <= x:
+            lo = mid
+        else:
+            hi = mid
+    return lo
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _table_at(xs: FloatArray, ls: FloatArray, cum: FloatArray, x: float) -> tuple[float, float]:
+    """``(A(x), L(x))``: ``L`` the piecewise-linear interpolation of ``ln |delta|`` through the
+    nodes, ``A(x) = int_{xs[0]}^x exp(-L(s)) ds`` (exact for the piecewise-linear L; ``cum``
+    holds A at the nodes)."""
+    k = _interval_of(xs, x)
+    h = x - xs[k]
+    b = (ls[k + 1] - ls[k]) / (xs[k + 1] - xs[k])
+    ea = math.exp(-ls[k])
+    if abs(b * h) < 1e-8:
+        part = ea * h * (1.0 - 0.5 * b * h)
+    else:
+        part = -ea * math.expm1(-b * h) / b
+    return cum[k] + part, ls[k] + b * h
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def rul_times_tabulated(
+    plant: FloatArray,
+    seg_dur: FloatArray,
+    seg_cur: FloatArray,
+    samples: FloatArray,
+    ell_fail: float,
+    horizon: float,
+    eps_seg: float,
+    eps_jump: float,
+) -> FloatArray:
+    """:func:`rul_times` for a load of many segments per period, from a table of the
+    per-period change shared by all samples.
+
+    The samples differ in ``(alpha, m)`` (their speeds only in the first period's transient).
+    On the slowly drifting periodic trajectory the change of ``ln alpha`` per period is
+    ``delta(ell)``, and for a rate ``m`` it is ``(m / m_ref) delta(ell)`` to first order (the
+    sliding factor does not depend on m; the speeds' lag behind the steady state, which does,
+    is a small part). So ``delta`` is probed once, at ``m_ref`` the samples' median m, on
+    ``TABLE_NODES`` points over ``[ell_fail, max ell + TABLE_PAD]`` (:func:`drifting_probe`),
+    ``ln |delta|`` interpolated linearly between them. The number of periods from ``ell0`` to
+    ``ell_fail`` is the integral of the modified equation's ``dn / d ell = 1 / (delta (1 -
+    delta' / 2))``, to first order in delta':
+
+        N = A(ell0) m_ref / m - (L(ell0) - L(ell_fail)) / 2 + c,
+        A(x) = int_{ell_fail}^x ds / |delta(s)|,  L = ln |delta|,
+
+    with ``c`` the periods the first period gains or loses against the drifting trajectory
+    (its transient from the estimated speeds: one period simulated from the samples' mean).
+    The time is ``floor(N)`` periods plus the time into the last period at which the wear
+    reaches the fraction ``N - floor(N)`` of that period's, in the periodic steady state at
+    ``alpha_f``. Samples with fewer than ``TABLE_MIN_PERIODS`` periods to go, above the table
+    or of a non-positive m, and all samples when the probes find no sliding, are propagated by
+    :func:`time_to_failure`.
+    """
+    n = samples.shape[0]
+    n_seg = seg_dur.shape[0]
+    times = np.full(n, np.nan)
+    exact = np.zeros(n, dtype=np.bool_)
+    memo = np.zeros((n_seg, MAX_SUB + 2))
+    period = 0.0
+    for j in range(n_seg):
+        period += seg_dur[j]
+    m_pos = np.empty(n)
+    n_pos = 0
+    ell_top = ell_fail
+    w1_sum = 0.0
+    w2_sum = 0.0
+    ell_sum = 0.0
+    for i in range(n):
+        w1 = samples[i, 0]
+        w2 = samples[i, 1]
+        al = samples[i, 2]
+        m = samples[i, 3]
+        if not (
+            math.isfinite(w1) and math.isfinite(w2) and math.isfinite(al) and math.isfinite(m)
+        ):
+            continue  # NaN, as time_to_failure
+        if al <= 0.0 or math.log(al) <= ell_fail:
+            times[i] = 0.0
+            continue
+        if m <= 0.0:
+            continue  # never wears
+        ell0 = math.log(al)
+        m_pos[n_pos] = m
+        n_pos += 1
+        ell_top = max(ell_top, ell0)
+        w1_sum += w1
+        w2_sum += w2
+        ell_sum += ell0
+        exact[i] = True  # provisional: the table decides below
+    if n_pos == 0:
+        return times
+    m_ref = np.median(m_pos[:n_pos])
+    # the first period from the samples' mean; a life of few periods skips the table
+    ell_ref = ell_sum / n_pos
+    memo[:, 0] = 0.0
+    _, _, ell_1, _ = one_period(
+        plant, seg_dur, seg_cur, w1_sum / n_pos, w2_sum / n_pos, ell_ref, m_ref, -math.inf,
+        eps_seg, memo,
+    )  # fmt: skip
+    ok = (ell_ref - ell_1) * 2.0 * TABLE_MIN_PERIODS < ell_ref - ell_fail
+    xs = np.empty(TABLE_NODES)
+    ls = np.empty(TABLE_NODES)
+    span = ell_top + TABLE_PAD - ell_fail
+    for k in range(TABLE_NODES if ok else 0):
+        start = ell_fail + span * k / (TABLE_NODES - 1.0)
+        ell_a, delta, _, _ = drifting_probe(plant, seg_dur, seg_cur, start, m_ref, eps_seg, memo)
+        if not (delta < 0.0) or (k > 0 and not ell_a > xs[k - 1]):
+            ok = False
+            break
+        xs[k] = ell_a
+        ls[k] = math.log(-delta)
+    # the periodic steady state at alpha_f: cumulative wear at the segment ends
+    cum_w = np.empty(n_seg + 1)
+    seg_t0 = np.empty(n_seg)  # start of each segment in the period
+    acc = 0.0
+    for j in range(n_seg):
+        seg_t0[j] = acc
+        acc += seg_dur[j]
+    seg_w1 = np.empty(n_seg)
+    seg_w2 = np.empty(n_seg)
+    al_f = math.exp(ell_fail)
+    if ok:
+        s1, s2, _, _, _, _ = periodic_steady_state(plant, seg_dur, seg_cur, al_f)
+        cum_w[0] = 0.0
+        for j in range(n_seg):
+            seg_w1[j] = s1
+            seg_w2[j] = s2
+            s1, s2, integral = segment(plant, s1, s2, al_f, seg_cur[j], seg_dur[j])
+            cum_w[j + 1] = cum_w[j] + integral
+        ok = cum_w[n_seg] > 0.0
+    if ok:
+        cum = np.empty(TABLE_NODES)
+        cum[0] = 0.0
+        for k in range(TABLE_NODES - 1):
+            h = xs[k + 1] - xs[k]
+            b = (ls[k + 1] - ls[k]) / h
+            ea = math.exp(-ls[k])
+            cum[k + 1] = cum[k] + (ea * h if abs(b * h) < 1e-8 else -ea * math.expm1(-b * h) / b)
+        a_fail, l_fail = _table_at(xs, ls, cum, ell_fail)
+        # the first period from the samples' mean against the drifting trajectory
+        a_ref, l_ref = _table_at(xs, ls, cum, ell_ref)
+        a_1, l_1 = _table_at(xs, ls, cum, ell_1)
+        c_first = 1.0 - ((a_ref - a_1) - 0.5 * (l_ref - l_1))
+        for i in range(n):
+            if not exact[i]:
+                continue
+            ell0 = math.log(samples[i, 2])
+            if ell0 > xs[TABLE_NODES - 1]:
+                continue
+            a0, l0 = _table_at(xs, ls, cum, ell0)
+            periods = (a0 - a_fail) * m_ref / samples[i, 3] - 0.5 * (l0 - l_fail) + c_first
+            if periods < TABLE_MIN_PERIODS:
+                continue
+            whole = math.floor(periods)
+            target = (periods - whole) * cum_w[n_seg]
+            j = min(_interval_of(cum_w, target), n_seg - 1)
+            tc = _crossing_time(
+                plant, seg_w1[j], seg_w2[j], al_f, seg_cur[j], seg_dur[j], target - cum_w[j]
+            )
+            t = whole * period + seg_t0[j] + tc
+            times[i] = t if t <= horizon else np.nan
+            exact[i] = False
+    for i in range(n):
+        if exact[i]:
+            times[i] = time_to_failure(
+                plant, seg_dur, seg_cur, samples[i, 0], samples[i, 1], samples[i, 2],
+                samples[i, 3], ell_fail, horizon, eps_seg, eps_jump, memo,
+            )  # fmt: skip
+    return times
