@@ -1935,10 +1935,7 @@ def _table_at(xs: FloatArray, ls: FloatArray, cum: FloatArray, x: float) -> tupl
     h = x - xs[k]
     b = (ls[k + 1] - ls[k]) / (xs[k + 1] - xs[k])
     ea = math.exp(-ls[k])
-    if abs(b * h) < 1e-8:
-        part = ea * h * (1.0 - 0.5 * b * h)
-    else:
-        part = -ea * math.expm1(-b * h) / b
+    part = ea * h * (1.0 - 0.5 * b * h) if abs(b * h) < 1e-8 else -ea * math.expm1(-b * h) / b
     return cum[k] + part, ls[k] + b * h
 
 
@@ -2053,7 +2050,7 @@ def rul_times_tabulated(
             seg_w2[j] = s2
             s1, s2, integral = segment(plant, s1, s2, al_f, seg_cur[j], seg_dur[j])
             cum_w[j + 1] = cum_w[j] + integral
-        ok = cum_w[n_seg] > 0.0
+        ok = bool(cum_w[n_seg] > 0.0)
     if ok:
         cum = np.empty(TABLE_NODES)
         cum[0] = 0.0
