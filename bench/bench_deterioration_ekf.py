@@ -213,6 +213,40 @@ def main() -> None:
         rows.append(("  compiled kernel alone", f"{s_kernel / n_long * 1e9:8.1f} ns/sample"))
         if label == "seed Q, F44 = 0":
             per_sample = s_step / n_long
+        if label.startswith("defaults (edge"):
+            # the same samples as a stream of 10,000-sample batches (the outputs of a batch
+            # then stay in cache; a 1e6 batch writes 19 x 8 MB of outputs to memory)
+            chunks = [
+                Batch(t[i : i + 10_000], {k: v[i : i + 10_000] for k, v in ch.items()})
+                for i in range(0, n_long, 10_000)
+            ]
+
+            def stream(
+                config: de.DekfConfig = config,
+                state0: de.DekfState = state0,
+                chunks: list[Batch] = chunks,
+            ) -> None:
+                state = state0
+                for chunk in chunks:
+                    state, _ = de.step(config, state, chunk)
+
+            rows.append(
+                (
+                    "  the same 1e6 samples in 10,000-sample batches",
+                    f"{best_of(stream, 3) / n_long * 1e9:8.1f} ns/sample",
+                )
+            )
+
+            def outputs_only() -> None:
+                out = np.empty((kern.OUT_LEN, n_long))
+                out[:] = 1.0
+
+            rows.append(
+                (
+                    "  writing 19 output rows of a 1e6 batch alone (np.empty, fill)",
+                    f"{best_of(outputs_only, 5) / n_long * 1e9:8.1f} ns/sample",
+                )
+            )
     n_fp = 1000
     for exact, label in ((True, "scipy expm (same discretization)"), (False, "Euler")):
         s_fp = filterpy_seconds_per_sample(t, ch, n_fp, exact=exact)

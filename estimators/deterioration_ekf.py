@@ -447,6 +447,7 @@ def plant_vector_of(config: DekfConfig, vec: FloatArray, t_s: float = math.inf) 
         return config.plant_vector
     plant = config.plant_vector.copy()
     plant[2:6] = cal[:4]
+    plant.setflags(write=False)  # as the configured vector: one compiled signature
     return plant
 
 
@@ -465,6 +466,8 @@ def _state_kernel_config(config: DekfConfig, vec: FloatArray) -> FloatArray:
     cfg[kern.CFG_INV_J2] = 1.0 / cal[3]
     cfg[kern.CFG_SKEW] = cal[4]
     cfg[kern.CFG_ALPHA_FLOOR] = float(vec[kern.ST_PCAL_ALPHA_REL])
+    # read-only as the configured vector, so that the kernels are compiled for one signature
+    cfg.setflags(write=False)
     return cfg
 
 

@@ -348,6 +348,9 @@ class PrognosisSettings:
         bound_c: c of the deterministic bounds (seed eq. 24, c = 3).
         eps_seg: largest change of ln(alpha) per propagation segment (midpoint rule).
         eps_jump: change of ln(alpha) covered by one cycle jump.
+        table_min_segments: a load of at least this many segments per period propagates the
+            Monte Carlo samples from a shared table of the per-period wear
+            (``rul_times_tabulated``); fewer, each sample period by period.
     """
 
     failure_dn: float = 0.9
@@ -357,6 +360,7 @@ class PrognosisSettings:
     bound_c: float = 3.0
     eps_seg: float = 0.01
     eps_jump: float = 0.25
+    table_min_segments: int = 64
 
 
 @dataclass(frozen=True)
@@ -465,7 +469,12 @@ def prognose(
     rng, entropy = prognosis_rng(settings.seed, t_s)
     z = rng.standard_normal((settings.n_trajectories, 4))
     samples = np.ascontiguousarray(x[None, :] + z @ covariance_factor(cov).T)
-    times = kern.rul_times(
+    propagate = (
+        kern.rul_times_tabulated
+        if seg_d.shape[0] >= settings.table_min_segments
+        else kern.rul_times
+    )
+    times = propagate(
         plant,
         seg_d,
         seg_c,

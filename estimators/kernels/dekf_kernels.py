@@ -532,6 +532,23 @@ def edge_moments(
 
 
 # ----------------------------------------------------------------------------- filter
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _median_step(q: float, a: float, n: float, g_min: float, up_min: float, down_min: float) -> float:
+    """One step of a running median of ``|a|`` (a stochastic-approximation quantile): ``q``
+    times ``g`` if ``a > q``, else divided by it, ``g = 1 + max(1 / (n + 1), g_min)``.
+    ``up_min = 1 + g_min`` and ``down_min = 1 / up_min`` are the caller's, shared by all medians
+    once ``n + 1 >= 1 / g_min``, so that the step then costs no division."""
+    if n == 0.0:
+        return max(a, 1e-300)
+    if (n + 1.0) * g_min >= 1.0:
+        up = up_min
+        down = down_min
+    else:
+        up = 1.0 + 1.0 / (n + 1.0)
+        down = 1.0 / up
+    return q * (up if a > q else down)
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def _grow(rows: FloatArray, used: int) -> FloatArray:
     """A copy of ``rows`` with twice the capacity (first ``used`` rows kept)."""
@@ -724,6 +741,9 @@ def _ekf_kernel(
     edge_model = cfg[CFG_INPUT_INTERVAL] == 2.0
     timing = cfg[CFG_INPUT_TIMING]
     memory = cfg[CFG_ADAPT_MEMORY]
+    inv_memory = 1.0 / memory if memory > 0.0 else 0.0
+    dt_timing = np.nan  # the spacing (timing / dt)^2 was last computed for
+    timing2 = 0.0
     gate1 = cfg[CFG_GATE]
     gate2 = cfg[CFG_GATE + 1]
     alpha_max = cfg[CFG_ALPHA_MAX]
@@ -741,8 +761,11 @@ def _ekf_kernel(
     alpha_floor = cfg[CFG_ALPHA_FLOOR]
     nis_ratio = st[ST_NIS_RATIO]
     nis_n = st[ST_NIS_N]
+    cs = math.sqrt(nis_ratio) if scale_on and nis_ratio > 1.0 else 1.0
 
     init = st[ST_INIT] == 1.0
+    a0_inv_of = np.nan  # the alpha0 inv_a0 was last computed for
+    inv_a0 = np.nan
     qw0 = st[ST_QW]
     qw1 = st[ST_QW + 1]
     pr0 = st[ST_Y_RES]
@@ -888,7 +911,10 @@ def _ekf_kernel(
                 ik = current[k]
                 du = ik - u_held if math.isfinite(ik) else 0.0
                 big = max(du * du, du_prev * du_prev)
-                var_u += big * (timing / dt) ** 2
+                if dt != dt_timing:
+                    timing2 = (timing / dt) ** 2
+                    dt_timing = dt
+                var_u += big * timing2
                 kbdt = cfg[CFG_KM] * cfg[CFG_INV_J1] * dt
                 edge = edge_model and du * du * kbdt * kbdt > 1.2 * rh0
                 if not edge:
@@ -992,15 +1018,13 @@ def _ekf_kernel(
         # covariance matching of the innovations against their predicted variance:
         # q_j <- max(0, q_j + d (min(e_j^2, gate S_jj) - S_jj)), d = max(1 / (n + 2), dt / memory).
         if memory > 0.0:
-            g_min = 2.0 * (tk - t_last) / memory if predicted else 1.0
+            g_min = 2.0 * (tk - t_last) * inv_memory if predicted else 1.0
+            up_min = 1.0 + g_min
+            down_min = 1.0 / up_min
             if have0:
                 if math.isfinite(h02):
                     a3 = abs(y0_raw - 3.0 * h00 + 3.0 * h01 - h02)
-                    if nq0 == 0.0:
-                        qt0 = max(a3, 1e-300)
-                    else:
-                        g = 1.0 + max(1.0 / (nq0 + 1.0), g_min)
-                        qt0 = qt0 * g if a3 > qt0 else qt0 / g
+                    qt0 = _median_step(qt0, a3, nq0, g_min, up_min, down_min)
                     nq0 += 1.0
                 h02 = h01
                 h01 = h00
@@ -1010,11 +1034,7 @@ def _ekf_kernel(
             if have1:
                 if math.isfinite(h12):
                     a3 = abs(y1 - 3.0 * h10 + 3.0 * h11 - h12)
-                    if nq1 == 0.0:
-                        qt1 = max(a3, 1e-300)
-                    else:
-                        g = 1.0 + max(1.0 / (nq1 + 1.0), g_min)
-                        qt1 = qt1 * g if a3 > qt1 else qt1 / g
+                    qt1 = _median_step(qt1, a3, nq1, g_min, up_min, down_min)
                     nq1 += 1.0
                 h12 = h11
                 h11 = h10
@@ -1024,19 +1044,11 @@ def _ekf_kernel(
             if predicted and math.isfinite(pr0) and math.isfinite(pr1):
                 if have0:
                     a3 = abs(y0 - x0 - ph00 * pr0 - ph01 * pr1)
-                    if nr0 == 0.0:
-                        qr0 = max(a3, 1e-300)
-                    else:
-                        g = 1.0 + max(1.0 / (nr0 + 1.0), g_min)
-                        qr0 = qr0 * g if a3 > qr0 else qr0 / g
+                    qr0 = _median_step(qr0, a3, nr0, g_min, up_min, down_min)
                     nr0 += 1.0
                 if have1:
                     a3 = abs(y1 - x1 - ph10 * pr0 - ph11 * pr1)
-                    if nr1 == 0.0:
-                        qr1 = max(a3, 1e-300)
-                    else:
-                        g = 1.0 + max(1.0 / (nr1 + 1.0), g_min)
-                        qr1 = qr1 * g if a3 > qr1 else qr1 / g
+                    qr1 = _median_step(qr1, a3, nr1, g_min, up_min, down_min)
                     nr1 += 1.0
             if nq0 >= MIN_DIFFS:
                 rh0 = (qt0 * D3_TO_SIGMA) ** 2
@@ -1053,7 +1065,9 @@ def _ekf_kernel(
                 rh0 = min(rh0, max((v0 * cd - cb * v1) * rdet, NOISE_FLOOR * v0 / ca))
                 rh1 = min(rh1, max((ca * v1 - cc * v0) * rdet, NOISE_FLOOR * v1 / cd))
             if predicted and nq0 >= MIN_DIFFS and nq1 >= MIN_DIFFS:
-                d = max(1.0 / (n_adapt + 2.0), (tk - t_last) / memory)
+                d = 0.5 * g_min
+                if (n_adapt + 2.0) * d < 1.0:
+                    d = 1.0 / (n_adapt + 2.0)
                 if have0:
                     ea = y0 - x0
                     sa = p00 + rh0
@@ -1264,12 +1278,14 @@ def _ekf_kernel(
         # (set at the window's end below), when above 1. If the innovations exceed their
         # predicted covariance by lam on average, the unmodelled error acting like noise, Q and
         # R are too small by lam; scaling both leaves the gain unchanged and scales P by lam.
-        cs = math.sqrt(nis_ratio) if scale_on and nis_ratio > 1.0 else 1.0
         sg0 = math.sqrt(max(p00, 0.0)) * cs
         sg1 = math.sqrt(max(p11, 0.0)) * cs
         sg2 = math.sqrt(max(p22, 0.0) * cs * cs + (alpha_floor * x2) ** 2)
         sg3 = math.sqrt(max(p33, 0.0)) * cs
-        dn = 1.0 - x2 / alpha0
+        if alpha0 != a0_inv_of:
+            inv_a0 = 1.0 / alpha0
+            a0_inv_of = alpha0
+        dn = 1.0 - x2 * inv_a0
         out[OUT_W1, k] = x0
         out[OUT_W2, k] = x1
         out[OUT_ALPHA, k] = x2
@@ -1279,14 +1295,15 @@ def _ekf_kernel(
         out[OUT_SIG + 2, k] = bc * sg2
         out[OUT_SIG + 3, k] = bc * sg3
         out[OUT_DN, k] = dn
-        out[OUT_DN_LO, k] = 1.0 - (x2 + bc * sg2) / alpha0
-        out[OUT_DN_HI, k] = 1.0 - (x2 - bc * sg2) / alpha0
+        out[OUT_DN_LO, k] = 1.0 - (x2 + bc * sg2) * inv_a0
+        out[OUT_DN_HI, k] = 1.0 - (x2 - bc * sg2) * inv_a0
         out[OUT_E, k] = e0
         out[OUT_E + 1, k] = e1
         sd0 = math.sqrt(s00)
         sd1 = math.sqrt(s11)
-        inv_sd0 = 1.0 / sd0
-        inv_sd1 = 1.0 / sd1
+        inv_sd01 = 1.0 / (sd0 * sd1)
+        inv_sd0 = sd1 * inv_sd01
+        inv_sd1 = sd0 * inv_sd01
         out[OUT_E_BOUND, k] = bc * sd0
         out[OUT_E_BOUND + 1, k] = bc * sd1
         out[OUT_R, k] = rh0
@@ -1420,6 +1437,7 @@ def _ekf_kernel(
             if w_sum_dof > 0.0:
                 nis_ratio = w_sum_nis / w_sum_dof
                 nis_n += 1.0
+                cs = math.sqrt(nis_ratio) if scale_on and nis_ratio > 1.0 else 1.0
             row[WIN_COV_SCALE] = nis_ratio if scale_on and nis_ratio > 1.0 else 1.0
             n_win += 1
             w_count = 0.0
@@ -1886,4 +1904,189 @@ def rul_times(
             eps_jump,
             memo,
         )
+    return times
+
+
+TABLE_NODES = 33  # probes of the per-period change over [ln alpha_f, ln alpha_top]
+TABLE_PAD = 0.2  # the top probe starts this far above the largest ln alpha of the samples
+TABLE_MIN_PERIODS = 8.0  # shorter lives are propagated period by period (time_to_failure)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _interval_of(xs: FloatArray, x: float) -> int:
+    """Index k with xs[k] <= x < xs[k + 1] (clamped to the ends) for increasing ``xs``."""
+    lo = 0
+    hi = xs.shape[0] - 1
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if xs[mid] <= x:
+            lo = mid
+        else:
+            hi = mid
+    return lo
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _table_at(xs: FloatArray, ls: FloatArray, cum: FloatArray, x: float) -> tuple[float, float]:
+    """``(A(x), L(x))``: ``L`` the piecewise-linear interpolation of ``ln |delta|`` through the
+    nodes, ``A(x) = int_{xs[0]}^x exp(-L(s)) ds`` (exact for the piecewise-linear L; ``cum``
+    holds A at the nodes)."""
+    k = _interval_of(xs, x)
+    h = x - xs[k]
+    b = (ls[k + 1] - ls[k]) / (xs[k + 1] - xs[k])
+    ea = math.exp(-ls[k])
+    part = ea * h * (1.0 - 0.5 * b * h) if abs(b * h) < 1e-8 else -ea * math.expm1(-b * h) / b
+    return cum[k] + part, ls[k] + b * h
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def rul_times_tabulated(
+    plant: FloatArray,
+    seg_dur: FloatArray,
+    seg_cur: FloatArray,
+    samples: FloatArray,
+    ell_fail: float,
+    horizon: float,
+    eps_seg: float,
+    eps_jump: float,
+) -> FloatArray:
+    """:func:`rul_times` for a load of many segments per period, from a table of the
+    per-period change shared by all samples.
+
+    The samples differ in ``(alpha, m)`` (their speeds only in the first period's transient).
+    On the slowly drifting periodic trajectory the change of ``ln alpha`` per period is
+    ``delta(ell)``, and for a rate ``m`` it is ``(m / m_ref) delta(ell)`` to first order (the
+    sliding factor does not depend on m; the speeds' lag behind the steady state, which does,
+    is a small part). So ``delta`` is probed once, at ``m_ref`` the samples' median m, on
+    ``TABLE_NODES`` points over ``[ell_fail, max ell + TABLE_PAD]`` (:func:`drifting_probe`),
+    ``ln |delta|`` interpolated linearly between them. The number of periods from ``ell0`` to
+    ``ell_fail`` is the integral of the modified equation's ``dn / d ell = 1 / (delta (1 -
+    delta' / 2))``, to first order in delta':
+
+        N = A(ell0) m_ref / m - (L(ell0) - L(ell_fail)) / 2 + c,
+        A(x) = int_{ell_fail}^x ds / |delta(s)|,  L = ln |delta|,
+
+    with ``c`` the periods the first period gains or loses against the drifting trajectory
+    (its transient from the estimated speeds: one period simulated from the samples' mean).
+    The time is ``floor(N)`` periods plus the time into the last period at which the wear
+    reaches the fraction ``N - floor(N)`` of that period's, in the periodic steady state at
+    ``alpha_f``. Samples with fewer than ``TABLE_MIN_PERIODS`` periods to go, above the table
+    or of a non-positive m, and all samples when the probes find no sliding, are propagated by
+    :func:`time_to_failure`.
+    """
+    n = samples.shape[0]
+    n_seg = seg_dur.shape[0]
+    times = np.full(n, np.nan)
+    exact = np.zeros(n, dtype=np.bool_)
+    memo = np.zeros((n_seg, MAX_SUB + 2))
+    period = 0.0
+    for j in range(n_seg):
+        period += seg_dur[j]
+    m_pos = np.empty(n)
+    n_pos = 0
+    ell_top = ell_fail
+    w1_sum = 0.0
+    w2_sum = 0.0
+    ell_sum = 0.0
+    for i in range(n):
+        w1 = samples[i, 0]
+        w2 = samples[i, 1]
+        al = samples[i, 2]
+        m = samples[i, 3]
+        if not (
+            math.isfinite(w1) and math.isfinite(w2) and math.isfinite(al) and math.isfinite(m)
+        ):
+            continue  # NaN, as time_to_failure
+        if al <= 0.0 or math.log(al) <= ell_fail:
+            times[i] = 0.0
+            continue
+        if m <= 0.0:
+            continue  # never wears
+        ell0 = math.log(al)
+        m_pos[n_pos] = m
+        n_pos += 1
+        ell_top = max(ell_top, ell0)
+        w1_sum += w1
+        w2_sum += w2
+        ell_sum += ell0
+        exact[i] = True  # provisional: the table decides below
+    if n_pos == 0:
+        return times
+    m_ref = np.median(m_pos[:n_pos])
+    # the first period from the samples' mean; a life of few periods skips the table
+    ell_ref = ell_sum / n_pos
+    memo[:, 0] = 0.0
+    _, _, ell_1, _ = one_period(
+        plant, seg_dur, seg_cur, w1_sum / n_pos, w2_sum / n_pos, ell_ref, m_ref, -math.inf,
+        eps_seg, memo,
+    )  # fmt: skip
+    ok = (ell_ref - ell_1) * 2.0 * TABLE_MIN_PERIODS < ell_ref - ell_fail
+    xs = np.empty(TABLE_NODES)
+    ls = np.empty(TABLE_NODES)
+    span = ell_top + TABLE_PAD - ell_fail
+    for k in range(TABLE_NODES if ok else 0):
+        start = ell_fail + span * k / (TABLE_NODES - 1.0)
+        ell_a, delta, _, _ = drifting_probe(plant, seg_dur, seg_cur, start, m_ref, eps_seg, memo)
+        if not (delta < 0.0) or (k > 0 and not ell_a > xs[k - 1]):
+            ok = False
+            break
+        xs[k] = ell_a
+        ls[k] = math.log(-delta)
+    # the periodic steady state at alpha_f: cumulative wear at the segment ends
+    cum_w = np.empty(n_seg + 1)
+    seg_t0 = np.empty(n_seg)  # start of each segment in the period
+    acc = 0.0
+    for j in range(n_seg):
+        seg_t0[j] = acc
+        acc += seg_dur[j]
+    seg_w1 = np.empty(n_seg)
+    seg_w2 = np.empty(n_seg)
+    al_f = math.exp(ell_fail)
+    if ok:
+        s1, s2, _, _, _, _ = periodic_steady_state(plant, seg_dur, seg_cur, al_f)
+        cum_w[0] = 0.0
+        for j in range(n_seg):
+            seg_w1[j] = s1
+            seg_w2[j] = s2
+            s1, s2, integral = segment(plant, s1, s2, al_f, seg_cur[j], seg_dur[j])
+            cum_w[j + 1] = cum_w[j] + integral
+        ok = bool(cum_w[n_seg] > 0.0)
+    if ok:
+        cum = np.empty(TABLE_NODES)
+        cum[0] = 0.0
+        for k in range(TABLE_NODES - 1):
+            h = xs[k + 1] - xs[k]
+            b = (ls[k + 1] - ls[k]) / h
+            ea = math.exp(-ls[k])
+            cum[k + 1] = cum[k] + (ea * h if abs(b * h) < 1e-8 else -ea * math.expm1(-b * h) / b)
+        a_fail, l_fail = _table_at(xs, ls, cum, ell_fail)
+        # the first period from the samples' mean against the drifting trajectory
+        a_ref, l_ref = _table_at(xs, ls, cum, ell_ref)
+        a_1, l_1 = _table_at(xs, ls, cum, ell_1)
+        c_first = 1.0 - ((a_ref - a_1) - 0.5 * (l_ref - l_1))
+        for i in range(n):
+            if not exact[i]:
+                continue
+            ell0 = math.log(samples[i, 2])
+            if ell0 > xs[TABLE_NODES - 1]:
+                continue
+            a0, l0 = _table_at(xs, ls, cum, ell0)
+            periods = (a0 - a_fail) * m_ref / samples[i, 3] - 0.5 * (l0 - l_fail) + c_first
+            if periods < TABLE_MIN_PERIODS:
+                continue
+            whole = math.floor(periods)
+            target = (periods - whole) * cum_w[n_seg]
+            j = min(_interval_of(cum_w, target), n_seg - 1)
+            tc = _crossing_time(
+                plant, seg_w1[j], seg_w2[j], al_f, seg_cur[j], seg_dur[j], target - cum_w[j]
+            )
+            t = whole * period + seg_t0[j] + tc
+            times[i] = t if t <= horizon else np.nan
+            exact[i] = False
+    for i in range(n):
+        if exact[i]:
+            times[i] = time_to_failure(
+                plant, seg_dur, seg_cur, samples[i, 0], samples[i, 1], samples[i, 2],
+                samples[i, 3], ell_fail, horizon, eps_seg, eps_jump, memo,
+            )  # fmt: skip
     return times

@@ -123,12 +123,17 @@ def test_plant_calibration_restarts_the_verdict() -> None:
     drive = fs.draw_drive(7_303, rate_hz=500.0, load="square", mismatch=False, skew=False)
     drive = dataclasses.replace(drive, plant=plant, mismatch=True, noise_factor=10.0)
     t, ch, _ = fs.telemetry(drive, 32.0)
-    _, out = _run(
-        {"alpha0": drive.alpha0, "rul_every_s": 1.0, "rul_trajectories": 20, "health_window_samples": 1500},
-        t, ch,
-    )  # fmt: skip
+    raw = {"alpha0": drive.alpha0, "rul_every_s": 1.0, "rul_trajectories": 20, "health_window_samples": 1500}
+    state, out = _run(raw, t, ch)
     cal = [e for e in out.events if e.kind == "plant_calibrated"]  # type: ignore[attr-defined]
     assert cal, "the calibration must apply on this drive"
+    # the calibrated kernel configuration and plant are read-only like the configured ones, so
+    # each kernel is compiled for one signature (not a second one for writable vectors)
+    config = de.parse_config(raw)
+    calibrated_cfg = de._state_kernel_config(config, state.vector)
+    assert calibrated_cfg is not config.kernel_vector and not calibrated_cfg.flags.writeable
+    calibrated_plant = de.plant_vector_of(config, state.vector)
+    assert calibrated_plant is not config.plant_vector and not calibrated_plant.flags.writeable
     t_cal = cal[0].t_s
     before = [w for w in out.health if w.t_end_s <= t_cal]  # type: ignore[attr-defined]
     after = [w for w in out.health if w.t_end_s > t_cal]  # type: ignore[attr-defined]
