@@ -172,6 +172,8 @@ def test_many_streams_applied_in_one_transaction_and_a_failing_one_alone_rolls_b
             raise RuntimeError("simulated failure of one stream")
         return out
 
+    # The start-up warm-up calls the module's step too: let it finish before the patch.
+    assert api_noproc.app.state.kernels_warm.wait(300)
     monkeypatch.setattr(fakf, "step", step)
     # A generous time budget: the point is that the three streams share one transaction.
     processor = Processor(db, make_settings(db_url, processor_max_attempts=1, processor_txn_budget_s=60.0))

@@ -114,6 +114,8 @@ def test_apply_is_atomic(api_noproc: Api, db_url: str, monkeypatch: pytest.Monke
             raise RuntimeError("simulated crash in the middle of a transaction")
         return real_step(cfg, state, batch)
 
+    # The start-up warm-up calls the module's step too: let it finish before the patch.
+    assert api.app.state.kernels_warm.wait(300)
     monkeypatch.setattr(fakf, "step", failing_step)
     db = Database(db_url)
     with db.read() as session:

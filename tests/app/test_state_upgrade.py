@@ -149,6 +149,8 @@ def test_other_apply_errors_are_retried_then_fail_the_stream(
         calls["n"] += 1
         raise RuntimeError("kernel exploded")
 
+    # The start-up warm-up calls the module's step too: let it finish before the patch.
+    assert api.app.state.kernels_warm.wait(300)
     monkeypatch.setattr(fakf, "step", broken_step)
     r = _send(api, "ema1", 0, s, wait=60.0)
     assert r.status_code == 409 and r.json()["error"] == "StreamFailed", r.text
