@@ -4,8 +4,10 @@ A real ``fleethealth serve`` on 127.0.0.1 (SQLite in a temporary folder, and Pos
 ``--pg``) is warmed by one stream, then streams are registered in steps (default 1,000, 5,000,
 10,000 and 20,000 in all); each new stream gets one small Arrow batch, posted with ``?wait=`` so
 that it is applied before the step ends. After each step the server is left alone for
-``--settle-s`` seconds and then asked, through a probe loaded in front of ``app.cli``
-(``SIGUSR1``, nothing of it in the service), for a snapshot of its memory:
+``--settle-s`` seconds (default 35, past the actuator look-up cache's 30 s TTL), one batch is
+posted to the warm stream (the idle streams sit beside a live one), and the server is asked,
+through a probe loaded in front of ``app.cli`` (``SIGUSR1``, nothing of it in the service), for
+a snapshot of its memory:
 
 * RSS and ``/proc/self/smaps`` split into the brk heap, anonymous mappings (thread arenas,
   pymalloc arenas, large blocks) and file mappings;
@@ -332,16 +334,27 @@ def run_one(label: str, database_url: str, workdir: Path, args: argparse.Namespa
             t_s, channels = make_stream(10_000, seed=0, t0=1.7e9)
             client.post_batch(warm, "warm", "warm-0", channels, t_s=t_s, fmt="arrow", wait_s=60.0)
             client.create_aircraft(tail)
-        time.sleep(args.settle_s)
-        steps.append({"streams": 0} | take_probe(server, probe_out))
+        live = [0]
+
+        def settle_and_probe() -> dict:
+            # Idle streams among a live one: after --settle-s (longer than the actuator look-up
+            # cache's TTL), one batch on the warm stream, as any live traffic would send.
+            time.sleep(args.settle_s)
+            if args.live_post:
+                live[0] += 1
+                t, ch = make_stream(100, seed=live[0], t0=1.7e9 + 10.0 * live[0])
+                with FleetHealthClient(server.url, server.api_key, timeout=120.0) as c:
+                    c.post_batch(warm, "warm", f"live-{live[0]}", ch, t_s=t, fmt="arrow", wait_s=60.0)
+            return take_probe(server, probe_out)
+
+        steps.append({"streams": 0} | settle_and_probe())
         done = 0
         for size in args.steps:
             t0 = time.perf_counter()
             asyncio.run(register(server, tail, done, size, args.batch_samples, args.concurrency))
             took = time.perf_counter() - t0
             done = size
-            time.sleep(args.settle_s)
-            snap = {"streams": size, "register_s": took} | take_probe(server, probe_out)
+            snap = {"streams": size, "register_s": took} | settle_and_probe()
             steps.append(snap)
             print(f"[{label}] {size} streams ({took:.0f} s): RSS "
                   f"{snap['figures']['rss'] / 2**20:.1f} MiB", flush=True)
@@ -405,7 +418,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="total registered streams after each step")
     parser.add_argument("--batch-samples", type=int, default=100)
     parser.add_argument("--concurrency", type=int, default=8)
-    parser.add_argument("--settle-s", type=float, default=5.0, help="idle time before each probe")
+    parser.add_argument("--settle-s", type=float, default=35.0,
+                        help="idle time before each probe (default: past the 30 s actuator cache TTL)")
+    parser.add_argument("--live-post", action=argparse.BooleanOptionalAction, default=True,
+                        help="one batch on the warm stream before each probe (live traffic)")
     parser.add_argument("--tracemalloc", action="store_true", help="trace Python allocations too")
     parser.add_argument("--ready-timeout-s", type=float, default=180.0)
     parser.add_argument("--json-out", type=Path, default=None)
