@@ -8,6 +8,12 @@ may go unseen. A change made in this process calls :meth:`TtlCache.invalidate`, 
 that read the database before such an invalidation does not store its (possibly stale) answer
 (generation count). ``ttl_s = 0`` turns the cache off. Safe to use from the event loop and from
 worker threads at once.
+
+Memory: at most ``max_entries`` entries, and none older than ``ttl_s`` once the cache is used
+again. Entries are kept in the order they expire (each is stored at the end, with the same
+``ttl_s``), so every call drops the expired ones from the front, a constant cost per call on
+average: the entry of a stream gone idle leaves with the first use of the cache ``ttl_s`` after
+it was stored (docs/scaling.md, "Memory per idle stream").
 """
 
 from __future__ import annotations
@@ -36,14 +42,18 @@ class TtlCache(Generic[K, V]):
     def get(self, key: K) -> V | None:
         """The entry for ``key`` if it was read less than ``ttl_s`` ago, else None."""
         with self._lock:
+            self._drop_expired(self._clock())
             found = self._entries.get(key)
-            if found is None:
-                return None
-            expires_at, value = found
-            if self._clock() >= expires_at:
-                del self._entries[key]
-                return None
-            return value
+            return None if found is None else found[1]
+
+    def _drop_expired(self, now: float) -> None:
+        """Drop the entries expired at ``now``: they are the first ones (stored in expiry order)."""
+        entries = self._entries
+        while entries:
+            key, (expires_at, _) = next(iter(entries.items()))
+            if now < expires_at:
+                return
+            del entries[key]
 
     def generation(self) -> int:
         """Take this before reading the database, and hand it to :meth:`put`."""
@@ -57,16 +67,19 @@ class TtlCache(Generic[K, V]):
         if self.ttl_s <= 0:
             return
         with self._lock:
+            now = self._clock()
+            self._drop_expired(now)
             if generation != self._generation:
                 return
             self._entries.pop(key, None)
-            self._entries[key] = (self._clock() + self.ttl_s, value)
+            self._entries[key] = (now + self.ttl_s, value)
             while len(self._entries) > self.max_entries:
                 self._entries.popitem(last=False)
 
     def invalidate(self, key: K | None = None) -> None:
         """Forget ``key`` (every entry when None); look-ups under way do not store theirs."""
         with self._lock:
+            self._drop_expired(self._clock())
             self._generation += 1
             if key is None:
                 self._entries.clear()

@@ -713,7 +713,8 @@ def print_table(results: dict[str, dict]) -> None:
             print(
                 f"{lab}: server memory per registered stream (RSS delta / "
                 f"{memory['streams']} streams): {memory['bytes_per_stream'] / 1024:.2f} KiB "
-                f"(goal <= {GOAL_BYTES_PER_IDLE_STREAM / 1024:.0f} KiB per idle stream)"
+                f"(goal <= {GOAL_BYTES_PER_IDLE_STREAM / 1024:.0f} KiB per idle stream; one delta, "
+                "first burst included: the slope over fleet sizes is bench/bench_stream_memory.py)"
             )
     print(f"For scale: NASA prog_server handles about {PROG_SERVER_SAMPLES_S} samples/s.")
     print(
