@@ -247,12 +247,13 @@ class StmmaeConfig(EstimatorConfigModel):
         0.1, ge=0.0, le=3600.0, description="detection hold time while no fault is active, s"
     )
     hold_while_active_s: Number = Field(
-        0.5,
+        0.1,
         ge=0.0,
         le=3600.0,
         description="detection hold time of a surface while another surface is in fault, s "
-        "(longer than the transient a pair filter absorbs at an abrupt change of the active "
-        "fault)",
+        "(0.5 s outlasts the transient a pair filter absorbs at an abrupt change of the "
+        "active fault: fewer wrong-surface detections, but some second faults missed; "
+        "docs/methods-stmmae.md)",
     )
     clear_hold_s: Number = Field(
         1.0,

@@ -1023,10 +1023,10 @@ def _bank_kernel(
     hw = cfg[CFG_WINDOW]
     windows = np.empty((int(k_len // hw) + 1, WIN_LEN))
     events = np.empty((8, EV_LEN))
-    # counters start as np.int64(0), not a literal 0: numba would otherwise compile the callees
+    # counters start as int(np.int64(0)), not a literal 0: numba would otherwise compile the callees
     # twice, once for the literal type of the first iteration and once for int64
     n_win = 0
-    n_ev = np.int64(0)
+    n_ev = int(np.int64(0))
     variant = int(cfg[CFG_VARIANT])
     likelihood = int(cfg[CFG_LIKELIHOOD])
     rho = cfg[CFG_RHO]
@@ -1068,7 +1068,7 @@ def _bank_kernel(
             if math.isfinite(v):
                 u_last[j] = v
             du[j] = u_last[j] - bank.u_trim[j]
-        nv = np.int64(0)
+        nv = int(np.int64(0))
         for a in range(p):
             v = y[a, k]
             if math.isfinite(v):
@@ -1081,7 +1081,7 @@ def _bank_kernel(
             # filter's estimate (previous posterior), not at its command
             for j in range(m):
                 du_f[j] = du[j]
-            n_qx = np.int64(0)
+            n_qx = int(np.int64(0))
             if rebase:
                 for g in range(ns):
                     if dec[g, D_ACTIVE] != 1.0:

@@ -697,9 +697,10 @@ def test_detection_needs_likelihood_ratio_evidence_over_the_hold() -> None:
 
 def test_detection_while_another_fault_is_active_holds_longer() -> None:
     """While another surface is in fault the conditions must hold ``hold_while_active_s``
-    (a pair filter absorbs the active fault's tracking transient for a few tenths of a
-    second); a run shorter than that, as at each jump of a square wave, raises nothing."""
-    config = stmmae.parse_config({})
+    (set here to 0.5 s: a pair filter absorbs the active fault's tracking transient for a few
+    tenths of a second); a run shorter than that, as at each jump of a square wave, raises
+    nothing; with no other fault active ``hold_s`` applies."""
+    config = stmmae.parse_config({"hold_while_active_s": 0.5})
     assert config.hold_while_active_s > config.hold_s
     n = 100
     probs, defl, cmd, llrs = [0.95] * n, [6.0] * n, [0.0] * n, [1.0] * n
