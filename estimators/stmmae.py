@@ -243,7 +243,18 @@ class StmmaeConfig(EstimatorConfigModel):
     clear_probability: Number = Field(
         0.05, gt=0.0, le=0.5, description="clearance level of a surface's fault probability"
     )
-    hold_s: Number = Field(0.1, ge=0.0, le=3600.0, description="detection hold time, s")
+    hold_s: Number = Field(
+        0.1, ge=0.0, le=3600.0, description="detection hold time while no fault is active, s"
+    )
+    hold_while_active_s: Number = Field(
+        0.1,
+        ge=0.0,
+        le=3600.0,
+        description="detection hold time of a surface while another surface is in fault, s "
+        "(0.5 s outlasts the transient a pair filter absorbs at an abrupt change of the "
+        "active fault: fewer wrong-surface detections, but some second faults missed; "
+        "docs/methods-stmmae.md)",
+    )
     clear_hold_s: Number = Field(
         1.0,
         ge=0.0,
@@ -457,6 +468,7 @@ def _kernel_vector(config: StmmaeConfig) -> FloatArray:
     cfg[kern.CFG_DETECT_P] = config.detect_probability
     cfg[kern.CFG_CLEAR_P] = config.clear_probability
     cfg[kern.CFG_HOLD_S] = config.hold_s
+    cfg[kern.CFG_HOLD_ACTIVE_S] = config.hold_while_active_s
     cfg[kern.CFG_CLEAR_HOLD_S] = config.clear_hold_s
     cfg[kern.CFG_ONSET_P] = config.onset_probability
     cfg[kern.CFG_WINDOW] = config.health_window_samples

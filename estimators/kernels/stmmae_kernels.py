@@ -62,7 +62,8 @@ CFG_CLEAR_SMOOTH_S = 17  # time constant of that smoothing
 CFG_MIN_LLR = 18  # smallest log-likelihood ratio (fault vs no-fault) summed over the hold
 CFG_OSC_CORR = 19  # autocorrelation level below which a deflection history is oscillating
 CFG_OSC_SWING = 20  # swing (rad) an oscillating fault must also exceed
-CFG_LEN = 21
+CFG_HOLD_ACTIVE_S = 21  # detection hold time while another surface is in fault
+CFG_LEN = 22
 
 KIND_BLOCK_S = 0.05  # the kind test reads the deflection estimate as means over 0.05 s blocks
 KIND_BLOCKS = 200  # capacity of the block history: fault_kind_window_s <= 10 s
@@ -752,12 +753,14 @@ def _decide(
     a_smooth: float,
     a_clear: float,
     llr: float,
+    others_active: bool,
 ) -> int:
     """Detection, classification and clearance of one surface at one sample; returns 0 or
     ``EV_DETECTED``/``EV_CLASSIFIED``/``EV_CLEARED`` (the caller writes the event from
     ``dec[h]``; after a clearance it calls :func:`reset_after_clearance`).
 
-    Detection needs, held together for ``CFG_HOLD_S``: the marginal probability ``prob`` and
+    Detection needs, held together for ``CFG_HOLD_S`` (``CFG_HOLD_ACTIVE_S`` while another
+    surface is in fault, ``others_active``): the marginal probability ``prob`` and
     the isolation odds ``iso`` (the surface's probability of being the only new fault against
     its strongest competitor's) above ``CFG_DETECT_P``, the smoothed deflection estimate more
     than ``CFG_MIN_ERR`` from the command, and at the end the log-likelihood ratio between the
@@ -793,7 +796,8 @@ def _decide(
             if math.isfinite(llr):
                 dec[h, D_LLR] += llr
             _kind_add(dec, kbuf, h, t, defl, defl_var)
-            if t - dec[h, D_ABOVE_T] >= cfg[CFG_HOLD_S] and dec[h, D_LLR] >= cfg[CFG_MIN_LLR]:
+            hold = cfg[CFG_HOLD_ACTIVE_S] if others_active else cfg[CFG_HOLD_S]
+            if t - dec[h, D_ABOVE_T] >= hold and dec[h, D_LLR] >= cfg[CFG_MIN_LLR]:
                 dec[h, D_ACTIVE] = 1.0
                 dec[h, D_DETECTED_T] = t
                 dec[h, D_BELOW_T] = np.nan
@@ -1019,8 +1023,10 @@ def _bank_kernel(
     hw = cfg[CFG_WINDOW]
     windows = np.empty((int(k_len // hw) + 1, WIN_LEN))
     events = np.empty((8, EV_LEN))
+    # counters start as int(np.int64(0)), not a literal 0: numba would otherwise compile the callees
+    # twice, once for the literal type of the first iteration and once for int64
     n_win = 0
-    n_ev = 0
+    n_ev = int(np.int64(0))
     variant = int(cfg[CFG_VARIANT])
     likelihood = int(cfg[CFG_LIKELIHOOD])
     rho = cfg[CFG_RHO]
@@ -1062,7 +1068,7 @@ def _bank_kernel(
             if math.isfinite(v):
                 u_last[j] = v
             du[j] = u_last[j] - bank.u_trim[j]
-        nv = 0
+        nv = int(np.int64(0))
         for a in range(p):
             v = y[a, k]
             if math.isfinite(v):
@@ -1075,7 +1081,7 @@ def _bank_kernel(
             # filter's estimate (previous posterior), not at its command
             for j in range(m):
                 du_f[j] = du[j]
-            n_qx = 0
+            n_qx = int(np.int64(0))
             if rebase:
                 for g in range(ns):
                     if dec[g, D_ACTIVE] != 1.0:
@@ -1196,6 +1202,7 @@ def _bank_kernel(
                 a_smooth,
                 a_clear,
                 llr,
+                n_active_before > 0,
             )
             if code != 0:
                 events = _write_event(events, n_ev, tk, float(code), dec, h)

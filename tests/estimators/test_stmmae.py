@@ -638,9 +638,10 @@ def test_config_model_schema_and_named_state_parts() -> None:
 
 
 # ----------------------------------------------------------------------------- decision logic
-def _decide_run(config, probs, defl_deg, cmd_deg, llrs, dt=0.01):
+def _decide_run(config, probs, defl_deg, cmd_deg, llrs, dt=0.01, others_active=False):
     """Feed one surface's decision logic a sequence of (probability, deflection, command,
-    log-likelihood ratio) samples; return the codes raised and the decision fields."""
+    log-likelihood ratio) samples (``others_active``: another surface is in fault); return the
+    codes raised and the decision fields."""
     cfg = config.kernel_vector
     dec = np.zeros((1, kern.D_LEN))
     for idx in kern.D_TIMES:
@@ -666,6 +667,7 @@ def _decide_run(config, probs, defl_deg, cmd_deg, llrs, dt=0.01):
             a_s,
             a_c,
             llr,
+            others_active,
         )
         if code:
             codes.append((round(k * dt, 2), code))
@@ -690,6 +692,32 @@ def test_detection_needs_likelihood_ratio_evidence_over_the_hold() -> None:
     assert codes and codes[0][1] == kern.EV_DETECTED
     # and the deflection gate: a surface at its command is not in fault, whatever the odds
     codes, _ = _decide_run(config, probs, [0.2] * n, cmd, [0.5] * n)
+    assert codes == []
+
+
+def test_detection_while_another_fault_is_active_holds_longer() -> None:
+    """While another surface is in fault the conditions must hold ``hold_while_active_s``
+    (set here to 0.5 s: a pair filter absorbs the active fault's tracking transient for a few
+    tenths of a second); a run shorter than that, as at each jump of a square wave, raises
+    nothing; with no other fault active ``hold_s`` applies."""
+    config = stmmae.parse_config({"hold_while_active_s": 0.5})
+    assert config.hold_while_active_s > config.hold_s
+    n = 100
+    probs, defl, cmd, llrs = [0.95] * n, [6.0] * n, [0.0] * n, [1.0] * n
+    codes, _ = _decide_run(config, probs, defl, cmd, llrs)
+    assert codes[0] == (config.hold_s, kern.EV_DETECTED)
+    codes, _ = _decide_run(config, probs, defl, cmd, llrs, others_active=True)
+    assert codes[0] == (config.hold_while_active_s, kern.EV_DETECTED)
+    short = int(round(0.3 / 0.01))
+    burst = [0.95] * short + [0.2] * short
+    codes, _ = _decide_run(
+        config,
+        burst * 2,
+        [6.0] * 4 * short,
+        [0.0] * 4 * short,
+        [1.0] * 4 * short,
+        others_active=True,
+    )
     assert codes == []
 
 
