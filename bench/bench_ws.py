@@ -219,6 +219,31 @@ def run_all(args: argparse.Namespace, source: Path | None) -> dict[str, float]:
     return out
 
 
+def latency_rounds(args: argparse.Namespace) -> int:
+    """Frame to result median at light load (one connection, one frame at a time), each tree's
+    server alone, alternating; three streams per server."""
+    trees: list[tuple[str, Path | None]] = [("new", None)]
+    if args.baseline is not None:
+        trees.insert(0, ("base", args.baseline.resolve()))
+    medians: dict[str, list[float]] = {label: [] for label, _ in trees}
+    for _ in range(args.latency_rounds):
+        for label, source in trees:
+            with tempfile.TemporaryDirectory(prefix="fleethealth-ws-lat-") as tmp, running_server(
+                f"sqlite:///{Path(tmp) / 'lat.db'}", Path(tmp), args.ready_timeout_s, source=source
+            ) as server:
+                for k in range(3):
+                    tail = f"L{k}"
+                    _setup(server.url, server.api_key, tail, 1)
+                    t, ch = make_stream(10 * 120, seed=7, t0=0.0)
+                    lat = latency(server.url, server.api_key, tail, frames_of(t, ch, 10)[:120])[20:]
+                    medians[label].append(float(np.median(lat) * 1e3))
+    print("10-sample frame to result, median ms per stream (one server at a time, in turn)")
+    for label, values in medians.items():
+        print(f"  {label:<5} " + " ".join(f"{v:6.2f}" for v in values)
+              + f"   median of medians {float(np.median(values)):.2f}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true")
@@ -233,7 +258,13 @@ def main(argv: list[str] | None = None) -> int:
         "--baseline", type=Path, default=None,
         help="also run against this source tree (e.g. git worktree add /tmp/base main), side by side",
     )
+    ap.add_argument("--latency-rounds", type=int, default=0,
+                    help="only the light-load latency, one server at a time, base and new in turn "
+                         "for this many rounds (side by side, both servers at once, each one's "
+                         "latency depends on what the other is doing at that moment)")
     args = ap.parse_args(argv)
+    if args.latency_rounds:
+        return latency_rounds(args)
     runs: dict[str, dict[str, float]] = {}
     if args.baseline is None:
         runs["new"] = run_all(args, None)
