@@ -25,6 +25,16 @@ def make_settings(db_url: str, **kw: Any) -> Settings:
     )
 
 
+class FakeClock:
+    """A clock the test moves by hand (for the look-up caches' TTLs)."""
+
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
 class Api:
     """A TestClient with the admin key and helpers for the common calls."""
 

@@ -7,16 +7,9 @@ from __future__ import annotations
 import random
 
 from app.cache import TtlCache
+from tests.app.conftest import FakeClock
 
 TTL_S = 5.0
-
-
-class FakeClock:
-    def __init__(self) -> None:
-        self.now = 1000.0
-
-    def __call__(self) -> float:
-        return self.now
 
 
 def test_idle_entries_leave_at_the_next_use_after_their_ttl() -> None:

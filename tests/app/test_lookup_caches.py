@@ -15,17 +15,9 @@ from app.cache import TtlCache
 from app.db import Database
 from app.fleet import service as fleet
 from app.main import create_app
-from tests.app.conftest import Api, make_settings
+from tests.app.conftest import Api, FakeClock, make_settings
 
 TTL_S = 5.0
-
-
-class FakeClock:
-    def __init__(self) -> None:
-        self.now = 1000.0
-
-    def __call__(self) -> float:
-        return self.now
 
 
 def _one_sample(k: int) -> dict[str, object]:
