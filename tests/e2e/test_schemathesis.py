@@ -23,10 +23,13 @@ CONFIG = Path(__file__).with_name("schemathesis.toml")
 @pytest.mark.timeout(600)
 def test_schemathesis_finds_no_failure(live_server: LiveServer, tmp_path: Path) -> None:
     server = live_server
+    # One worker: with two, schemathesis' threads parse lambdas' sources at once (hypothesis'
+    # descriptions), and Python 3.11's AST constructor can then fail with "recursion depth
+    # mismatch" (CPython gh-106905), a crash of the tool, not a finding.
     cmd = [
         SCHEMATHESIS, "--config-file", str(CONFIG), "run", f"{server.url}/openapi.json",
         "--checks", "all", "--header", f"Authorization: Bearer {server.api_key}",
-        "--max-examples", "5", "--seed", "17", "--workers", "2", "--no-color",
+        "--max-examples", "5", "--seed", "17", "--workers", "1", "--no-color",
         "--report", "junit", "--report-dir", str(tmp_path),
     ]
     # Run in tmp_path: schemathesis keeps a cache folder in its working directory.
