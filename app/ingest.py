@@ -59,8 +59,9 @@ JSON_BYTES_PER_VALUE = 56
 # Memory one CSV cell takes while the CSV reader converts it (the parsed text block and the
 # column it becomes): 4.05 million cells took 153 MB (bench/bench_batch_memory.py).
 CSV_BYTES_PER_VALUE = 40
-# Memory encoding a value for the telemetry log takes: the zstd output (about the float64 size
-# for sensor noise) and the float64 it is made from, while the batch waits for its commit.
+# Memory encoding a value for the telemetry log takes: the LZ4 output (at most about the float64
+# size: 88 % of it on sensor noise) and the float64 it is made from, while the batch waits for
+# its commit.
 LOG_BYTES_PER_VALUE = 16
 
 #: A request body as the decoders take it: bytes, a bytearray or a read-only map of a spool file.
