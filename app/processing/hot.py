@@ -4,9 +4,10 @@
 The store stays the truth: an entry is used only when the row the apply just read (inside its
 transaction, under the stream's claim) holds exactly the bytes the entry was made from, state
 and config alike, and the kind still reads states of the version it held. Whatever else
-happened to the row since (another process applied the stream, an admin rewind reset it, a maintenance action started a new baseline, a replay rewrote it, or
-this process's own transaction rolled back after the entry was made) changed those bytes, and
-the state is read from the row again. An entry is taken out when it is used and put back only
+happened to the row since (another process applied the stream, an admin rewind reset it, a
+maintenance action started a new baseline, a replay rewrote it, or this process's own
+transaction rolled back after the entry was made) changed those bytes, and the state is read
+from the row again. An entry is taken out when it is used and put back only
 with the new state, so a step that failed half-way leaves nothing behind.
 
 Parsing a state costs from about 0.1 ms (FAKF, a 1 KB JSON document) to several ms (the
