@@ -345,7 +345,7 @@ def test_tabulated_times_fall_back_for_short_lives_and_special_samples() -> None
     assert table[1] == 0.0 and np.isnan(table[0]) and np.isnan(table[2])
 
 
-def _estimate(alpha: float, m: float, rel_alpha: float, rel_m: float) -> tuple[np.ndarray, np.ndarray]:
+def _cloud_estimate(alpha: float, m: float, rel_alpha: float, rel_m: float) -> tuple[np.ndarray, np.ndarray]:
     """An estimate and a covariance like the filter's (speeds near their steady state, alpha
     and m negatively correlated)."""
     x = np.array([139.7, 12.0, alpha, m])
@@ -384,7 +384,7 @@ def test_fitted_times_match_the_period_by_period_propagation(case: int) -> None:
     surface (and say so), each within FIT_TOL of the period-by-period propagation of the same
     samples, the quantiles within 2e-4."""
     _, segments, alpha, m = _fit_cases()[case]
-    x, cov = _estimate(alpha, m, 2e-3, 0.02)
+    x, cov = _cloud_estimate(alpha, m, 2e-3, 0.02)
     settings = rul.PrognosisSettings(n_trajectories=400, failure_dn=0.9)
     t_s = 41.0 + case
     res = rul.prognose(PLANT, 10.0, x, cov, t_s, segments, settings)
@@ -415,12 +415,12 @@ def test_fitted_times_fall_back_where_the_surface_does_not_hold() -> None:
     assert square is not None
     seg_d = np.ascontiguousarray(square[0])
     seg_c = np.ascontiguousarray(square[1])
-    x, cov = _estimate(9.2, 0.013, 2e-3, 0.02)
+    x, cov = _cloud_estimate(9.2, 0.013, 2e-3, 0.02)
     fitted = rul.prognose(PLANT, 10.0, x, cov, 5.0, square, rul.PrognosisSettings(n_trajectories=400))
     assert fitted.propagation == "fitted"
     in_cloud = float(np.median(fitted.times_s))  # a horizon inside the cloud of times
     for rel_m, n, horizon in ((2.0, 400, 1e7), (0.02, 150, 1e7), (0.02, 400, in_cloud)):
-        x, cov = _estimate(9.2, 0.013, 2e-3, rel_m)
+        x, cov = _cloud_estimate(9.2, 0.013, 2e-3, rel_m)
         settings = rul.PrognosisSettings(n_trajectories=n, horizon_s=horizon)
         res = rul.prognose(PLANT, 10.0, x, cov, 5.0, square, settings)
         assert res.propagation == "exact"
