@@ -59,6 +59,8 @@ class _Periodic(Generic[M]):
                 await self._check()
             except SQLAlchemyError as exc:  # the database is unreachable now: look again later
                 log.warning("%s could not read the database: %s", type(self).__name__, type(exc).__name__)
+            except Exception:  # one bad round must not end the checks of every connection
+                log.exception("%s failed; looking again in %.1f s", type(self).__name__, self.interval_s)
 
     async def _check(self) -> None:
         raise NotImplementedError
