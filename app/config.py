@@ -88,9 +88,12 @@ class Settings(BaseSettings):
     # frames (Arrow, float64) barely compress, and deflating every small ack and result costs
     # more CPU than it saves bytes on a LAN (docs/benchmarks.md, "WebSocket streaming").
     ws_per_message_deflate: bool = False
+    # How often the process looks, in one query for all its stream connections, for results in
+    # the store that never reached their connection (a wake-up from another process lost).
     ws_result_poll_s: float = Field(default=1.0, gt=0)
-    # How often an open WebSocket re-reads its key: a revoked key or a lost scope closes the
-    # connection (1008) within this time, whichever process revoked it.
+    # How often an open WebSocket's key is re-read (once per key and scope for every connection
+    # of the process): a revoked key or a lost scope closes the connection (1008) within this
+    # time, whichever process revoked it.
     ws_auth_recheck_s: float = Field(default=5.0, gt=0)
     # A valid API key is remembered this long, so most requests read no key from the database:
     # a key revoked or re-scoped by another process keeps working (with its old scopes) for at

@@ -272,7 +272,11 @@ def main(argv: list[str] | None = None) -> int:
         # Both at once, so that they share whatever else loads the machine alike (run one after
         # the other, a change of load between the runs shows as a change of speed).
         def one(label: str, source: Path | None) -> None:
-            runs[label] = run_all(args, source)
+            try:
+                runs[label] = run_all(args, source)
+            except BaseException as exc:  # a thread drops SystemExit silently: say what failed
+                print(f"  [{label}] failed: {exc!r}", flush=True)
+                raise
 
         threads = [threading.Thread(target=one, args=("base", args.baseline.resolve())),
                    threading.Thread(target=one, args=("new", None))]
@@ -280,6 +284,8 @@ def main(argv: list[str] | None = None) -> int:
             th.start()
         for th in threads:
             th.join()
+        if set(runs) != {"base", "new"}:
+            return 1
         runs = {"base": runs["base"], "new": runs["new"]}
     print("\nWebSocket streaming, SQLite, FAKF attached, Arrow frames (frame -> logged -> applied -> result)")
     labels = list(runs)

@@ -146,7 +146,8 @@ class Subscription:
     # process): the subscriber reads them back from the store.
     stale: bool = False
 
-    def _mark_stale(self) -> None:  # runs in the subscriber's loop
+    def mark_stale(self) -> None:
+        """Tell the subscriber to read its results back from the store (in its loop)."""
         self.stale = True
         self.wakeup.set()
 
@@ -215,8 +216,10 @@ class Hub:
         self._resolve(actuator_pk, lambda w: (True, None) if w.seq <= applied_seq else None)
 
     def mark_failed(self, actuator_pk: int, reason: str) -> None:
-        """The stream is failed: its waiters hear it at once (any thread)."""
+        """The stream is failed: its waiters and its connections hear it at once (any
+        thread; the connections read the failure back from the store)."""
         self._resolve(actuator_pk, lambda _w: (False, reason))
+        self.wake_stream(actuator_pk)
 
     def _resolve(self, actuator_pk: int, outcome: Callable[[Waiter], tuple[bool, str | None] | None]) -> None:
         with self._lock:
@@ -247,7 +250,7 @@ class Hub:
         with self._lock:
             subs = list(self._streams.get(actuator_pk, ()))
         for sub in subs:
-            inbox(sub.loop).put(sub._mark_stale)
+            inbox(sub.loop).put(sub.mark_stale)
 
     # ------------------------------------------------------------------ subscriptions
     def subscribe_stream(self, actuator_pk: int, maxsize: int) -> Subscription:

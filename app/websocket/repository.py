@@ -9,6 +9,14 @@ from app.ingest import FRAME_ID_PREFIX
 from app.models import Stream, TelemetryBatch
 
 
+def applied_marks(session: Session, actuator_pks: list[int]) -> dict[int, tuple[int, str | None]]:
+    """(last applied seq, failure) of each of the streams that has a row."""
+    rows = session.execute(
+        select(Stream.actuator_pk, Stream.last_applied_seq, Stream.failure).where(Stream.actuator_pk.in_(actuator_pks))
+    )
+    return {int(pk): (int(seq), failure) for pk, seq, failure in rows}
+
+
 def stream(session: Session, actuator_pk: int) -> Stream | None:
     return session.get(Stream, actuator_pk)
 

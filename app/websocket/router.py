@@ -22,14 +22,13 @@ import logging
 import os
 import time
 from collections import OrderedDict, deque
-from concurrent.futures import Executor, ThreadPoolExecutor
+from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
 import orjson
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from prometheus_client import Counter, Gauge
-from sqlalchemy.exc import SQLAlchemyError
 from starlette.concurrency import run_in_threadpool
 from starlette.websockets import WebSocketState
 
@@ -39,9 +38,10 @@ from app.db import Database
 from app.errors import STORAGE_FAULTS, DomainError, IdempotencyConflict, InvalidBatch, StaleBatch
 from app.events import service as events
 from app.events.service import LOGGED_TYPES
-from app.ingest import UnsupportedFrame
+from app.ingest import ParsedBatch, UnsupportedFrame
 from app.processing.processor import Processor
 from app.telemetry import service as telemetry
+from app.telemetry.service import Ack
 from app.telemetry.validation import DEFAULT_LIMITS, BatchLimits
 from app.telemetry.writer import LogWriter
 from app.websocket import service
@@ -54,6 +54,7 @@ from app.websocket.hub import (
     inbox,
     public,
 )
+from app.websocket.watch import KeyGuard, ResultSweep, per_loop
 
 log = logging.getLogger("fleethealth.stream")
 router = APIRouter(prefix="/v1")
@@ -76,18 +77,6 @@ CLOSE_INTERNAL = 1011
 CLOSE_TRY_LATER = 1013
 # Logged events read per query by a fleet subscriber.
 LOG_PAGE = 500
-
-
-async def _wait_set(event: asyncio.Event, timeout_s: float) -> None:
-    """Wait until ``event`` is set, at most ``timeout_s`` (then it is set). Cheaper than
-    ``asyncio.wait_for(event.wait(), ...)``, which makes a task per call: one timer instead."""
-    if event.is_set():
-        return
-    timer = asyncio.get_running_loop().call_later(timeout_s, event.set)
-    try:
-        await event.wait()
-    finally:
-        timer.cancel()
 
 
 def _dumps(obj: Any) -> str:
@@ -134,42 +123,25 @@ async def _authenticate(ws: WebSocket, db: Database, settings: Settings, scope: 
     return principal
 
 
-def _key_checks(ws: WebSocket, db: Database, settings: Settings) -> service.KeyChecks:
-    checks: service.KeyChecks | None = getattr(ws.app.state, "ws_key_checks", None)
-    if checks is None:
-        checks = ws.app.state.ws_key_checks = service.KeyChecks(db, settings.ws_auth_recheck_s / 2)
-    return checks
+async def _close_on_refusal(ws: WebSocket, db: Database, settings: Settings, principal: Principal, scope: str,
+                            lock: asyncio.Lock) -> None:
+    """Once the process-wide :class:`~app.websocket.watch.KeyGuard` finds the connection's key
+    revoked or without ``scope`` (within ``ws_auth_recheck_s``), close with 1008 and return.
+    Nothing runs here until then: no timer, no reading of its own."""
+    guard = per_loop(ws.app.state, "ws_key_guard", lambda: KeyGuard(db, settings.ws_auth_recheck_s / 2))
+    watch = guard.watch(principal, scope)
+    try:
+        refusal = await watch.refused
+    finally:
+        guard.unwatch(watch)
+    WS_KEY_CLOSES.labels(refusal.name).inc()
 
+    async def close() -> None:
+        async with lock:  # never in the middle of another message
+            await _refuse(ws, CLOSE_POLICY, refusal.name, refusal.detail)
 
-async def _guard_key(
-    ws: WebSocket, db: Database, settings: Settings, principal: Principal, scope: str, lock: asyncio.Lock
-) -> None:
-    """Re-check the connection's key every half ``ws_auth_recheck_s``; once it is revoked or
-    lacks ``scope``, close with 1008 and return. Reading the database (not an in-process
-    notice) makes a revocation by any process, or by the CLI, count. The connections of one
-    key share each reading (:class:`~app.websocket.service.KeyChecks`: at most one read per
-    key and scope per half interval, however many connections use it), so a revocation is seen
-    within ``ws_auth_recheck_s``."""
-    checks = _key_checks(ws, db, settings)
-    while True:
-        await asyncio.sleep(settings.ws_auth_recheck_s / 2)
-        try:
-            refusal = checks.cached(principal, scope)
-            if refusal is service.STALE:
-                refusal = await run_in_threadpool(checks.read, principal, scope)
-        except SQLAlchemyError as exc:  # the database is unreachable now: check again later
-            log.warning("could not re-check the key of an open WebSocket: %s", type(exc).__name__)
-            continue
-        if isinstance(refusal, DomainError):
-            WS_KEY_CLOSES.labels(refusal.name).inc()
-
-            async def close(err: DomainError = refusal) -> None:
-                async with lock:  # never in the middle of another message
-                    await _refuse(ws, CLOSE_POLICY, err.name, err.detail)
-
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(close(), settings.ws_close_timeout_s)
-            return
+    with contextlib.suppress(TimeoutError):
+        await asyncio.wait_for(close(), settings.ws_close_timeout_s)
 
 
 # ----------------------------------------------------------------------------- ingest stream
@@ -273,7 +245,6 @@ class _StreamConn:
     results_rate: RateMeter = field(default_factory=lambda: RateMeter())
     sent_seq: int = 0  # the last result sent (older pushes are stale)
     limits: BatchLimits = DEFAULT_LIMITS
-    read_back_at: float = field(default_factory=time.monotonic)  # of the last read-back
 
     # ------------------------------------------------------------------ results
     def _take_pushed(self) -> None:
@@ -305,35 +276,39 @@ class _StreamConn:
             self.ready[msg["seq"]] = msg
         self.failure = failure
 
-    def _should_read_back(self, head: int, now: float) -> bool:
+    def _should_read_back(self, head: int) -> bool:
         """Whether the head's result may be in the store without having been pushed here:
-        pushes were lost (queue overflow), another process applied the stream (its
-        notification), or this process knows the head is applied. Otherwise the connection waits for the push, and reads back only every
-        ``10 * ws_result_poll_s`` (a notification lost without a reconnect of the listener):
-        a thousand connections waiting for a busy processor do not each read the store every
-        poll."""
+        pushes were lost (queue overflow), the stream was applied elsewhere or failed (a
+        notification, or the process-wide :class:`~app.websocket.watch.ResultSweep` that
+        finds wake-ups lost), or this process knows the head is applied. Otherwise the
+        connection waits for the push: a thousand connections waiting for a busy processor do
+        not read the store, nor wake up, until something happened to their stream."""
         if self.sub.overflowed or self.sub.stale:
             self.sub.overflowed = self.sub.stale = False
             return True
         known = self.processor.known_applied(self.actuator_pk)
-        if known is not None and known >= head:
-            return True
-        return now - self.read_back_at >= 10 * self.settings.ws_result_poll_s
+        return known is not None and known >= head
+
+    def waiting_for(self) -> tuple[int, int] | None:
+        """(stream, seq) of the result this connection waits for, None when it waits for none."""
+        if not self.inflight:
+            return None
+        head = next(iter(self.inflight))
+        return None if head in self.ready else (self.actuator_pk, head)
 
     async def push_results(self) -> None:
-        poll = self.settings.ws_result_poll_s
         while True:
             if not self.inflight:
                 self.inflight_added.clear()
                 await self.inflight_added.wait()
                 continue
-            await _wait_set(self.sub.wakeup, poll)
+            # Woken by a push, a notification, the sweep, or a frame acknowledged after its
+            # result had come: no timer of its own.
+            await self.sub.wakeup.wait()
             self.sub.wakeup.clear()
             self._take_pushed()
             head = next(iter(self.inflight))
-            now = time.monotonic()
-            if head not in self.ready and self._should_read_back(head, now):
-                self.read_back_at = now
+            if head not in self.ready and self._should_read_back(head):
                 await self._read_back()
             while self.inflight:
                 head = next(iter(self.inflight))
@@ -445,14 +420,9 @@ class _StreamConn:
 
     async def _take_frame(self, data: str | bytes) -> bool:
         """Log one frame and acknowledge it; False when it was refused (connection closed)."""
-        args = (data, self.channels, self.settings.max_batch_samples, self.limits)
         try:
-            # In a parse thread even when small: the decoders release and re-take the GIL, and
-            # in the event loop each re-take waits behind the busy writer and processor threads
-            # (measured: parsed in the loop, 20 % more server CPU per frame).
-            client_seq, parsed = await self.box.wrap(self.parse_pool.submit(telemetry.prepare_frame, *args))
             # Acknowledged once committed (durable), by the log writer's group commit.
-            ack = await self.box.wrap(self.writer.submit(self.actuator_pk, parsed))
+            client_seq, ack = await self.box.wrap(_parse_then_append(self, data))
         except UnsupportedFrame as exc:
             WS_FRAMES.labels("unsupported").inc()
             await _refuse(self.ws, CLOSE_UNSUPPORTED, exc.name, exc.detail)
@@ -499,6 +469,37 @@ class _StreamConn:
         return True
 
 
+def _parse_then_append(conn: _StreamConn, data: str | bytes) -> Future[tuple[int, Ack]]:
+    """Parse a frame in a parse thread, hand it from there to the log writer, and resolve with
+    (client_seq, its acknowledgement) once committed or with the error that refused it: one
+    hand-over back to the event loop per frame, not one after the parse and one after the
+    commit. In a parse thread even when small: the decoders release and re-take the GIL, and in
+    the event loop each re-take waits behind the busy writer and processor threads (measured:
+    parsed in the loop, 20 % more server CPU per frame). Frames of one connection are handed
+    over one at a time (the next once this one is acknowledged), so they reach the log in
+    order."""
+    out: Future[tuple[int, Ack]] = Future()
+
+    def parsed(done: Future[tuple[int, ParsedBatch]]) -> None:  # in the parse thread
+        try:
+            client_seq, batch = done.result()
+        except BaseException as exc:
+            out.set_exception(exc)
+            return
+
+        def appended(ack: Future[Ack]) -> None:  # in the log writer's thread
+            try:
+                out.set_result((client_seq, ack.result()))
+            except BaseException as exc:
+                out.set_exception(exc)
+
+        conn.writer.submit(conn.actuator_pk, batch).add_done_callback(appended)
+
+    args = (data, conn.channels, conn.settings.max_batch_samples, conn.limits)
+    conn.parse_pool.submit(telemetry.prepare_frame, *args).add_done_callback(parsed)
+    return out
+
+
 @router.websocket("/aircraft/{tail}/actuators/{actuator_id}/stream")
 async def stream(ws: WebSocket, tail: str, actuator_id: str) -> None:
     """Live ingest: frames in, ``logged`` and ``result`` messages out (docs/api.md)."""
@@ -538,6 +539,7 @@ async def stream(ws: WebSocket, tail: str, actuator_id: str) -> None:
         if client_seq is not None:
             conn.inflight[seq] = client_seq
     WS_CONNECTIONS.labels("stream").inc()
+    sweep = per_loop(ws.app.state, "ws_result_sweep", lambda: ResultSweep(db, settings.ws_result_poll_s))
     pusher = asyncio.create_task(conn.push_results())
     tasks = {pusher}
     try:
@@ -560,13 +562,17 @@ async def stream(ws: WebSocket, tail: str, actuator_id: str) -> None:
             },
         )
         if conn.inflight:
+            # Some may have been applied between the start's reading and the subscription
+            # (their pushes missed): read back once, the rest are pushed.
+            sub.mark_stale()
             conn.inflight_added.set()
             processor.notify(pk)
+        sweep.add(sub, conn.waiting_for)
         tasks = {
             pusher,
             asyncio.create_task(conn.read_frames()),
             asyncio.create_task(conn.log_frames()),
-            asyncio.create_task(_guard_key(ws, db, settings, principal, "ingest", conn.lock)),
+            asyncio.create_task(_close_on_refusal(ws, db, settings, principal, "ingest", conn.lock)),
         }
         done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
         for task in done:
@@ -581,6 +587,7 @@ async def stream(ws: WebSocket, tail: str, actuator_id: str) -> None:
         # pending"); a frame being logged finishes its transaction in the thread pool anyway.
         await asyncio.gather(*tasks, return_exceptions=True)
         conn.release()
+        sweep.discard(sub)
         hub.unsubscribe(sub)
         WS_CONNECTIONS.labels("stream").dec()
         if ws.application_state == WebSocketState.CONNECTED:
@@ -660,7 +667,7 @@ async def fleet_events(ws: WebSocket) -> None:
     tasks: list[asyncio.Task[None]] = []
 
     async def guard() -> None:
-        await _guard_key(ws, db, settings, principal, "read", lock)
+        await _close_on_refusal(ws, db, settings, principal, "read", lock)
 
     try:
         await _send(ws, lock, {"type": "ready", "tails": tails or None, "types": sorted(types), "after": cursor})

@@ -3,10 +3,8 @@ missed."""
 
 from __future__ import annotations
 
-import threading
-import time
 from dataclasses import dataclass
-from typing import Any, Final
+from typing import Any
 
 from app.auth.service import Principal, authenticate, recheck
 from app.db import Database
@@ -38,63 +36,24 @@ def authenticate_key(db: Database, authorization: str) -> Principal:
         return authenticate(s, authorization)
 
 
-def recheck_key(db: Database, principal: Principal, scope: str) -> None:
-    """Raise Unauthorized / Forbidden when the key was revoked or lost ``scope``."""
+def read_keys(db: Database, keys: dict[tuple[int, str], Principal]) -> dict[tuple[int, str], DomainError | None]:
+    """Re-read every (key id, scope) in one transaction: the refusal each produces now
+    (``Unauthorized``, ``Forbidden``), None while the key is still good."""
+    out: dict[tuple[int, str], DomainError | None] = {}
     with db.read() as s:
-        recheck(s, principal, scope)
-
-
-class _Stale:
-    """No reading of the key young enough: read it again."""
-
-
-STALE: Final = _Stale()
-
-
-class KeyChecks:
-    """The latest reading of each (key, scope) an open WebSocket depends on, shared by every
-    connection of the process: a thousand connections of one key cost one read per
-    ``max_age_s``, not a thousand. A reading is the refusal it produced (``Unauthorized``,
-    ``Forbidden``) or None while the key is still good.
-
-    :meth:`cached` runs in the event loop (no I/O); :meth:`read` in a worker thread, at most
-    one at a time per key and scope (the others wait for it and take its reading).
-    """
-
-    def __init__(self, db: Database, max_age_s: float) -> None:
-        self.db = db
-        self.max_age_s = max_age_s
-        self._seen: dict[tuple[int, str], tuple[float, DomainError | None]] = {}
-        self._locks: dict[tuple[int, str], threading.Lock] = {}
-        self._guard = threading.Lock()
-
-    def cached(self, principal: Principal, scope: str) -> DomainError | None | _Stale:
-        hit = self._seen.get((principal.key_id, scope))
-        if hit is None or time.monotonic() - hit[0] >= self.max_age_s:
-            return STALE
-        return hit[1]
-
-    def read(self, principal: Principal, scope: str) -> DomainError | None:
-        key = (principal.key_id, scope)
-        with self._guard:
-            lock = self._locks.setdefault(key, threading.Lock())
-        with lock:
-            hit = self._seen.get(key)
-            if hit is not None and time.monotonic() - hit[0] < self.max_age_s:
-                return hit[1]  # read by another connection while this one waited
+        for (key_id, scope), principal in keys.items():
             try:
-                recheck_key(self.db, principal, scope)
-                refusal: DomainError | None = None
+                recheck(s, principal, scope)
+                out[(key_id, scope)] = None
             except DomainError as exc:
-                refusal = exc
-            now = time.monotonic()
-            with self._guard:
-                self._seen[key] = (now, refusal)
-                # Keys no connection asked about for a while (closed ones) are forgotten.
-                for old in [k for k, (at, _) in self._seen.items() if now - at > 20 * self.max_age_s]:
-                    self._seen.pop(old, None)
-                    self._locks.pop(old, None)
-            return refusal
+                out[(key_id, scope)] = exc
+    return out
+
+
+def applied_marks(db: Database, actuator_pks: list[int]) -> dict[int, tuple[int, str | None]]:
+    """The applied mark and failure of each stream (streams with none yet are left out)."""
+    with db.read() as s:
+        return repository.applied_marks(s, actuator_pks)
 
 
 def stream_start(db: Database, principal: Principal, tail: str, actuator_id: str) -> StreamStart:

@@ -1,0 +1,205 @@
+"""The process-wide checks of open WebSockets (app.websocket.watch): one reading per interval
+for every connection, not one per connection; and the hand-overs a stream connection waits on
+instead of a timer of its own (a failed stream wakes it, a frame reaches the log writer from the
+parse thread)."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Iterator
+from typing import Any
+
+import orjson
+import pytest
+from fastapi.testclient import TestClient
+from sqlalchemy import select
+from starlette.websockets import WebSocketDisconnect
+
+from app.auth.service import Principal, authenticate, create_key, revoke_key
+from app.db import Database
+from app.errors import DomainError, InvalidBatch, Unauthorized
+from app.main import create_app
+from app.models import Actuator
+from app.telemetry.validation import DEFAULT_LIMITS
+from app.telemetry.writer import LogWriter
+from app.websocket import router as ws_router
+from app.websocket import service
+from app.websocket.hub import Hub, Subscription
+from app.websocket.watch import KeyGuard, ResultSweep
+from estimators import fakf
+from tests.app.conftest import Api, make_settings
+
+FRAME = {"type": "samples", "client_seq": 1, "t": [0.0, 0.001], "channels": {"current": [0.1, 0.2], "voltage": [1.0, 1.1]}}
+
+
+def _counting(monkeypatch: pytest.MonkeyPatch, name: str) -> list[Any]:
+    """Record each call of ``service.<name>`` (its arguments), calling through."""
+    calls: list[Any] = []
+    real = getattr(service, name)
+
+    def counted(db: Database, arg: Any) -> Any:
+        calls.append(arg)
+        return real(db, arg)
+
+    monkeypatch.setattr(service, name, counted)
+    return calls
+
+
+def _actuator_pk(db_url: str, actuator_id: str = "ema1") -> int:
+    db = Database(db_url)
+    with db.read() as s:
+        pk = s.scalar(select(Actuator.id).where(Actuator.actuator_id == actuator_id))
+    db.dispose()
+    assert pk is not None
+    return int(pk)
+
+
+def _principal(db: Database, key: str) -> Principal:
+    with db.read() as s:
+        return authenticate(s, f"Bearer {key}")
+
+
+async def _until(cond: Any, bound: int = 2000) -> None:
+    """Let the loop run until ``cond()`` holds (a bounded number of short waits, no fixed sleep)."""
+    for _ in range(bound):
+        if cond():
+            return
+        await asyncio.sleep(0.005)
+    raise AssertionError("condition not reached")
+
+
+def test_one_key_reading_per_interval_serves_every_connection_and_a_revocation_reaches_all(
+    db_url: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    db = Database(db_url)
+    with db.write() as s:
+        row, key = create_key(s, "default", ["ingest", "read"], name="stand")
+        _, other = create_key(s, "default", ["read"], name="board")
+    stand, board = _principal(db, key), _principal(db, other)
+    reads = _counting(monkeypatch, "read_keys")
+
+    async def run() -> tuple[list[DomainError | None], list[DomainError | None], bool]:
+        guard = KeyGuard(db, 0.02)
+        watches = [guard.watch(stand, "ingest") for _ in range(200)] + [guard.watch(board, "read")]
+        await _until(lambda: len(reads) >= 3)
+        # 201 connections, two (key, scope) pairs: each reading covers both, once.
+        assert all(sorted(r) == sorted([(stand.key_id, "ingest"), (board.key_id, "read")]) for r in reads)
+        assert not any(w.refused.done() for w in watches)
+        with db.write() as s:
+            assert revoke_key(s, row.id)
+        await _until(lambda: all(w.refused.done() for w in watches[:200]))
+        refused = [w.refused.result() if w.refused.done() else None for w in watches]
+        for w in watches:
+            guard.unwatch(w)
+        task = guard._task
+        # The last connection gone, no timer is left behind.
+        return refused[:200], refused[200:], task is None
+
+    stands, boards, stopped = asyncio.run(run())
+    db.dispose()
+    assert all(isinstance(r, Unauthorized) and r.detail == "the API key was revoked" for r in stands)
+    assert boards == [None] and stopped
+
+
+def test_the_sweep_wakes_only_connections_whose_result_is_in_the_store(api: Api, db_url: str,
+                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    api.setup_actuator()
+    pk = _actuator_pk(db_url)
+    r = api.c.post("/v1/aircraft/N1/actuators/ema1/telemetry?wait=60", headers=api.h,
+                   json={"batch_id": "b1", "t": [0.0, 0.001], "channels": {"current": [0.1, 0.2], "voltage": [1.0, 1.1]}})
+    assert r.status_code == 202, r.text
+    assert api.health()["last_applied_seq"] == 1
+    db = Database(db_url)
+    reads = _counting(monkeypatch, "applied_marks")
+
+    async def run() -> tuple[bool, bool, bool]:
+        loop = asyncio.get_running_loop()
+        applied, waiting, idle = (Subscription(loop, asyncio.Queue(1)) for _ in range(3))
+        sweep = ResultSweep(db, 0.02)
+        sweep.add(applied, lambda: (pk, 1))  # its result is in the store, its push was lost
+        sweep.add(waiting, lambda: (pk, 2))  # not applied yet: the push will come
+        sweep.add(idle, lambda: None)  # waits for nothing
+        await _until(lambda: applied.stale)
+        await _until(lambda: len(reads) >= 3)
+        for sub in (applied, waiting, idle):
+            sweep.discard(sub)
+        return applied.wakeup.is_set(), waiting.stale or waiting.wakeup.is_set(), idle.stale
+
+    woken, waiting_woken, idle_woken = asyncio.run(run())
+    db.dispose()
+    assert woken and not waiting_woken and not idle_woken
+    assert all(r == [pk] for r in reads)  # one query per round, for every waiting connection
+
+
+def test_a_failed_stream_wakes_its_stream_connections() -> None:
+    async def run() -> tuple[bool, bool, bool]:
+        hub = Hub()
+        sub = hub.subscribe_stream(7, maxsize=4)
+        other = hub.subscribe_stream(8, maxsize=4)
+        hub.mark_failed(7, "broken")
+        await _until(lambda: sub.stale)
+        return sub.stale, sub.wakeup.is_set(), other.stale
+
+    assert asyncio.run(run()) == (True, True, False)
+
+
+@pytest.fixture
+def api_failing(db_url: str) -> Iterator[Api]:
+    # No sweep within the test's time: only the failure's own wake-up can tell the connection.
+    settings = make_settings(db_url, processor_max_attempts=1, ws_result_poll_s=3600.0)
+    with TestClient(create_app(settings)) as client:
+        yield Api(client)
+
+
+def test_a_stream_connection_hears_its_stream_fail_without_polling(api_failing: Api,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    api = api_failing
+    api.setup_actuator()
+    assert api.app.state.kernels_warm.wait(300)
+
+    def broken_step(cfg, state, batch):  # type: ignore[no-untyped-def]
+        raise RuntimeError("kernel exploded")
+
+    monkeypatch.setattr(fakf, "step", broken_step)
+    with api.c.websocket_connect("/v1/aircraft/N1/actuators/ema1/stream", headers=api.h) as ws:
+        assert ws.receive_json()["type"] == "ready"
+        ws.send_json(FRAME)
+        assert ws.receive_json()["type"] == "logged"
+        err = ws.receive_json()
+        assert err["type"] == "error" and err["error"] == "StreamFailed" and "kernel exploded" in err["detail"]
+        with pytest.raises(WebSocketDisconnect) as closed:
+            ws.receive_json()
+    assert closed.value.code == 1011
+
+
+def test_a_frame_is_parsed_and_appended_with_one_hand_over(db_url: str, api: Api) -> None:
+    """The parse thread hands a good frame to the log writer; a bad one is refused with its
+    error and nothing reaches the writer."""
+    api.setup_actuator()
+    pk = _actuator_pk(db_url)
+    db = Database(db_url)
+    writer = LogWriter(db)
+    writer.start()
+    submitted: list[int] = []
+    real_submit = writer.submit
+
+    def submit(actuator_pk: int, batch: Any) -> Any:
+        submitted.append(actuator_pk)
+        return real_submit(actuator_pk, batch)
+
+    writer.submit = submit  # type: ignore[method-assign]
+    conn = ws_router._StreamConn.__new__(ws_router._StreamConn)
+    conn.actuator_pk, conn.channels, conn.writer = pk, ["current", "voltage"], writer
+    conn.settings, conn.limits = api.app.state.settings, DEFAULT_LIMITS
+    conn.parse_pool = ws_router._parse_pool()
+    try:
+        client_seq, ack = ws_router._parse_then_append(conn, orjson.dumps(FRAME).decode()).result(60)
+        assert client_seq == 1 and ack.seq == 1 and not ack.replayed and submitted == [pk]
+        bad = {**FRAME, "client_seq": True}
+        with pytest.raises(InvalidBatch, match="client_seq"):
+            ws_router._parse_then_append(conn, orjson.dumps(bad).decode()).result(60)
+        assert submitted == [pk]  # refused by the parse: nothing handed to the writer
+        assert api.health()["last_logged_seq"] == 1
+    finally:
+        writer.stop()
+        db.dispose()
