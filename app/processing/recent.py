@@ -2,8 +2,11 @@
 applies them, so that a fresh batch is not decoded again from its stored payload.
 
 Only a shortcut: the log stays the source of truth. A batch the processor does not find here
-(another process logged it, it was evicted, or a failed apply took it) is decoded from the log;
-the values are the same either way (the log's float64 columns are lossless).
+(another process logged it, the bound was reached when it was logged, or a failed apply took
+it) is decoded from the log; the values are the same either way (the log's float64 columns are
+lossless). At the bound (``MAX_SAMPLES``) a new batch is not held, unless the oldest held one is
+stale (``STALE_S``: presumably applied by another process) and gives way: the processor applies
+the oldest batches first, so under a backlog the held ones are those applied next.
 
 The log writer puts a group's batches *before* its commit (:meth:`RecentBatches.put`, tentative)
 and confirms them once the commit returned (:meth:`RecentBatches.confirm`) or drops them when it
@@ -31,6 +34,9 @@ from estimators.base import Batch
 
 # Upper bound of the samples held (x channels x 8 bytes): a backlog beyond it is read from the log.
 MAX_SAMPLES = 262_144
+#: A confirmed entry held this long is presumed applied elsewhere (another process's worker, a
+#: deleted stream): it gives way to a new batch when the bound is reached.
+STALE_S = 10.0
 #: Longest a taker waits for the writer's verdict on a tentative entry (then reads the log).
 CONFIRM_WAIT_S = 1.0
 
@@ -41,13 +47,16 @@ Key = tuple[int, int]
 class _Entry:
     batch_id: str
     batch: Batch
+    held_since: float
     confirmed: bool = False
 
 
 class RecentBatches:
-    def __init__(self, max_samples: int = MAX_SAMPLES, confirm_wait_s: float = CONFIRM_WAIT_S) -> None:
+    def __init__(self, max_samples: int = MAX_SAMPLES, confirm_wait_s: float = CONFIRM_WAIT_S,
+                 stale_s: float = STALE_S) -> None:
         self.max_samples = max_samples
         self.confirm_wait_s = confirm_wait_s
+        self.stale_s = stale_s
         self._cond = threading.Condition()
         self._items: OrderedDict[Key, _Entry] = OrderedDict()
         self._samples = 0
@@ -69,16 +78,25 @@ class RecentBatches:
             end_of_run=end_of_run,
         )
         key = (actuator_pk, seq)
+        now = time.monotonic()
         with self._cond:
             old = self._items.pop(key, None)
             if old is not None:
                 self._samples -= int(old.batch.t_s.shape[0])
-            self._items[key] = _Entry(batch_id, batch)
+            # Full: stale entries give way; fresh ones stay, and the new batch is not held. The
+            # processor applies the oldest first, so under a backlog the held batches are the
+            # next ones applied (evicting the oldest instead would drop each batch just before
+            # its apply, and a steady backlog above the bound would never hit).
+            while self._samples + n > self.max_samples and self._items:
+                oldest = next(iter(self._items.values()))
+                if not oldest.confirmed or now - oldest.held_since < self.stale_s:
+                    return None
+                self._items.popitem(last=False)
+                self._samples -= int(oldest.batch.t_s.shape[0])
+            self._items[key] = _Entry(batch_id, batch, now)
             self._samples += n
-            while self._samples > self.max_samples:
-                _, evicted = self._items.popitem(last=False)
-                self._samples -= int(evicted.batch.t_s.shape[0])
-            self._cond.notify_all()  # a taker waiting on an evicted entry reads the log
+            if old is not None:
+                self._cond.notify_all()  # a taker waiting on the replaced entry looks again
         return key
 
     def confirm(self, keys: Iterable[Key]) -> None:

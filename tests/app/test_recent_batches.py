@@ -194,3 +194,18 @@ def test_a_tentative_entry_is_not_taken_past_the_wait() -> None:
     recent.put(1, 1, "a", np.arange(3.0), {"x": np.zeros(3)}, False)
     assert recent.take(1, 1, "a") is None
     assert len(recent) == 1  # still the writer's to confirm or drop
+
+
+def test_at_the_bound_the_oldest_stay_unless_stale() -> None:
+    """Under a backlog the held batches are the next ones applied: a new batch is not held at
+    the bound; an entry held past ``stale_s`` (applied elsewhere) gives way."""
+    recent = RecentBatches(max_samples=20, stale_s=3600.0)
+    keys = [recent.put(1, seq, f"b{seq}", np.arange(10.0), {"x": np.zeros(10)}, False) for seq in (1, 2, 3)]
+    assert keys[2] is None and len(recent) == 2
+    recent.confirm([k for k in keys if k is not None])
+    assert recent.take(1, 1, "b1") is not None  # the oldest: still held
+    recent.stale_s = 0.0  # every held entry is now stale
+    assert recent.put(1, 4, "b4", np.arange(10.0), {"x": np.zeros(10)}, False) is not None
+    assert recent.put(1, 5, "b5", np.arange(10.0), {"x": np.zeros(10)}, False) is not None
+    assert recent.take(1, 2, "b2") is None  # gave way
+    assert len(recent) == 2
