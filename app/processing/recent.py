@@ -29,8 +29,16 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
+from prometheus_client import Counter
 
 from estimators.base import Batch
+
+TAKEN = Counter(
+    "fleethealth_recent_batches_total",
+    "Logged batches the apply looked for decoded in memory: found (hit) or decoded from the log (miss)",
+    ["outcome"],
+)
+_HIT, _MISS = TAKEN.labels("hit"), TAKEN.labels("miss")
 
 # Upper bound of the samples held (x channels x 8 bytes): a backlog beyond it is read from the log.
 MAX_SAMPLES = 262_144
@@ -133,13 +141,16 @@ class RecentBatches:
                     entry = self._items.get(key)
             if entry is None or not entry.confirmed:
                 self.misses += 1
+                _MISS.inc()
                 return None
             del self._items[key]
             self._samples -= int(entry.batch.t_s.shape[0])
             if entry.batch_id != batch_id:  # not the batch logged there: let it go, read the log
                 self.misses += 1
+                _MISS.inc()
                 return None
             self.hits += 1
+            _HIT.inc()
             return entry.batch
 
     def __len__(self) -> int:
