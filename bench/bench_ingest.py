@@ -655,7 +655,8 @@ def run_backend(
         recent = recent_batches(server)
         if recent:
             print(f"[{backend}] applies that found their batch decoded in memory: "
-                  f"{recent.get('hit', 0):.0f} hits, {recent.get('miss', 0):.0f} decoded from the log", flush=True)
+                  f"{recent.get('hit', 0):.0f} hits, {recent.get('miss', 0):.0f} decoded from the log "
+                  f"({recent.get('not_held', 0):.0f} batches not held: the bound was reached)", flush=True)
     return {"rows": rows, "memory": memory, "rate": rate, "recent": recent}
 
 

@@ -35,10 +35,11 @@ from estimators.base import Batch
 
 TAKEN = Counter(
     "fleethealth_recent_batches_total",
-    "Logged batches the apply looked for decoded in memory: found (hit) or decoded from the log (miss)",
+    "Logged batches the apply looked for decoded in memory: found (hit) or decoded from the log "
+    "(miss); and batches not held because the bound was reached (not_held)",
     ["outcome"],
 )
-_HIT, _MISS = TAKEN.labels("hit"), TAKEN.labels("miss")
+_HIT, _MISS, _NOT_HELD = TAKEN.labels("hit"), TAKEN.labels("miss"), TAKEN.labels("not_held")
 
 # Upper bound of the samples held (x channels x 8 bytes): a backlog beyond it is read from the log.
 MAX_SAMPLES = 262_144
@@ -98,6 +99,7 @@ class RecentBatches:
             while self._samples + n > self.max_samples and self._items:
                 oldest = next(iter(self._items.values()))
                 if not oldest.confirmed or now - oldest.held_since < self.stale_s:
+                    _NOT_HELD.inc()
                     return None
                 self._items.popitem(last=False)
                 self._samples -= int(oldest.batch.t_s.shape[0])
