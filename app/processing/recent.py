@@ -76,7 +76,7 @@ class RecentBatches:
     def put(self, actuator_pk: int, seq: int, batch_id: str, t_s: np.ndarray,
             channels: dict[str, np.ndarray], end_of_run: bool) -> Key | None:
         """Hold a batch about to be committed (tentative until :meth:`confirm`); its key, or
-        None when it is larger than the whole bound (not held)."""
+        None when it is not held (the bound is reached by fresh entries, or it alone exceeds it)."""
         n = int(t_s.shape[0])
         if n > self.max_samples:
             return None
