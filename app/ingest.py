@@ -23,6 +23,7 @@ channel at a time, each list freed once converted.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import math
 import mmap
@@ -36,6 +37,7 @@ import orjson
 import pyarrow as pa
 import pyarrow.csv as pacsv
 
+from app.codec import encode_columns
 from app.errors import InvalidBatch, UnsupportedMediaType
 
 JSON_TYPES = ("application/json",)
@@ -89,6 +91,24 @@ class ParsedBatch:
     def nbytes(self) -> int:
         """Bytes of the decoded samples (t and every channel)."""
         return int(self.t_s.nbytes) + sum(int(c.nbytes) for c in self.channels.values())
+
+    @functools.cached_property
+    def digest(self) -> str:
+        """:meth:`content_hash`, computed once (by :meth:`prepare_log`, outside the log's lock)."""
+        return self.content_hash()
+
+    @functools.cached_property
+    def log_payload(self) -> bytes:
+        """The block the telemetry log stores (``t`` and the channels, :func:`app.codec.encode_columns`),
+        encoded once (by :meth:`prepare_log`, outside the log's lock)."""
+        return encode_columns({TIME_COLUMN: self.t_s, **self.channels})
+
+    def prepare_log(self) -> None:
+        """Compute the digest and the log block now, in the thread that parsed the batch: the
+        log writer then only writes them, so neither holds the database's write lock (SQLite)
+        nor the writer thread; both release Python's lock while they run (hashlib, LZ4), so on
+        a large batch they run beside the processor."""
+        _ = self.digest, self.log_payload
 
     def content_hash(self) -> str:
         """Digest of the decoded samples, so a retry in another format or spacing still matches."""
@@ -339,7 +359,8 @@ def _arrow_to_float(arr: pa.Array | pa.ChunkedArray, name: str) -> np.ndarray:
         return np.full(len(arr), np.nan)
     if not (pa.types.is_floating(arr.type) or pa.types.is_integer(arr.type)):
         raise InvalidBatch(f"column {name!r} has type {arr.type}; numbers are needed")
-    arr = arr.cast(pa.float64())
+    if arr.type != pa.float64():
+        arr = arr.cast(pa.float64())
     if isinstance(arr, pa.ChunkedArray):
         # One chunk is used as it is (combine_chunks would copy it); several are joined.
         arr = arr.chunk(0) if arr.num_chunks == 1 else arr.combine_chunks()
@@ -480,14 +501,17 @@ _HEADER_RECORD_BATCH = 3
 class _Flat:
     """Bounds-checked reads of a flatbuffer: a malformed one raises ``ValueError``."""
 
+    _FORMATS = {fmt: struct.Struct("<" + fmt) for fmt in "BHIiq"}
+
     def __init__(self, buf: bytes) -> None:
         self.buf = buf
+        self.size = len(buf)
 
     def scalar(self, fmt: str, pos: int) -> int:
-        size = struct.calcsize(fmt)
-        if pos < 0 or pos + size > len(self.buf):
+        form = self._FORMATS[fmt]
+        if pos < 0 or pos + form.size > self.size:
             raise ValueError("flatbuffer offset out of range")
-        value: int = struct.unpack_from("<" + fmt, self.buf, pos)[0]
+        value: int = form.unpack_from(self.buf, pos)[0]
         return value
 
     def field(self, table: int, index: int) -> int | None:

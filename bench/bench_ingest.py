@@ -307,7 +307,7 @@ async def _bench_many_async(
     batch_samples: int,
     concurrency: int,
     timeout_s: float,
-) -> tuple[float, float]:
+) -> tuple[float, float, float]:
     async with AsyncFleetHealthClient(
         server.url, server.api_key, timeout=120.0, max_connections=concurrency
     ) as client:
@@ -334,6 +334,8 @@ async def _bench_many_async(
                     ack = await client.post_encoded(tail, actuator_id, body)
                 last_seq[actuator_id] = int(ack["seq"])
 
+        # The server's CPU from here on (registering the actuators is not the batches' cost).
+        cpu_start = tree_cpu_s(server.process.pid)
         start = time.perf_counter()
         await asyncio.gather(*(send(a) for a in actuator_ids))
         ack_s = time.perf_counter() - start
@@ -353,7 +355,8 @@ async def _bench_many_async(
             # Each look reads the whole fleet board: every 20 ms it took about 6 % of the
             # server's CPU (py-spy) away from the batches being measured.
             await asyncio.sleep(FLEET_POLL_S)
-        return ack_s, time.perf_counter() - start
+        applied_s = time.perf_counter() - start
+        return ack_s, applied_s, tree_cpu_s(server.process.pid) - cpu_start
 
 
 def bench_many(
@@ -367,13 +370,15 @@ def bench_many(
     concurrency: int,
     timeout_s: float,
 ) -> Row:
-    ack_s, applied_s = asyncio.run(
+    ack_s, applied_s, cpu_s = asyncio.run(
         _bench_many_async(
             server, tail, fmt, streams, n_batches, batch_samples, concurrency, timeout_s
         )
     )
     samples = streams * n_batches * batch_samples
-    return Row(backend, f"{streams} streams", fmt, streams, samples, ack_s, applied_s)
+    row = Row(backend, f"{streams} streams", fmt, streams, samples, ack_s, applied_s)
+    row.server_cpu_s = cpu_s
+    return row
 
 
 # ------------------------------------------------------------------------------------------------
@@ -631,7 +636,6 @@ def run_backend(
             with FleetHealthClient(server.url, server.api_key) as client:
                 client.create_aircraft(tail)
             for fmt in args.formats:
-                cpu0 = tree_cpu_s(server.process.pid)
                 row = bench_many(
                     server,
                     backend,
@@ -643,13 +647,31 @@ def run_backend(
                     args.concurrency,
                     args.timeout_s,
                 )
-                row.server_cpu_s = tree_cpu_s(server.process.pid) - cpu0
                 rows.append(row)
                 print(
                     f"[{backend}] {row.case} {fmt}: {row.samples_per_s:,.0f} samples/s, server CPU "
                     f"{row.server_cpu_us_per_sample:.2f} us/sample", flush=True
                 )
-    return {"rows": rows, "memory": memory, "rate": rate}
+        recent = recent_batches(server)
+        if recent:
+            print(f"[{backend}] applies that found their batch decoded in memory: "
+                  f"{recent.get('hit', 0):.0f} hits, {recent.get('miss', 0):.0f} decoded from the log "
+                  f"({recent.get('not_held', 0):.0f} batches not held: the bound was reached)", flush=True)
+    return {"rows": rows, "memory": memory, "rate": rate, "recent": recent}
+
+
+def recent_batches(server: Server) -> dict[str, float]:
+    """The server's ``fleethealth_recent_batches_total`` by outcome (empty when it has none)."""
+    import httpx
+
+    text = httpx.get(server.url + "/metrics", headers={"Authorization": f"Bearer {server.api_key}"},
+                     timeout=30.0).text
+    out: dict[str, float] = {}
+    for line in text.splitlines():
+        if line.startswith("fleethealth_recent_batches_total{"):
+            label = line.split('outcome="', 1)[1].split('"', 1)[0]
+            out[label] = float(line.rsplit(" ", 1)[1])
+    return out
 
 
 def print_table(results: dict[str, dict]) -> None:
@@ -794,6 +816,7 @@ def main(argv: list[str] | None = None) -> int:
                          for row in r["rows"]],
                 "memory": r["memory"],
                 "rate": r.get("rate", {}),
+                "recent": r.get("recent", {}),
             }
             for backend, r in results.items()
         }

@@ -74,7 +74,7 @@ def decode(
 ) -> LoggedBatch:
     """A logged batch, decoded (taken from ``recent`` when this process just logged it; else
     from ``payload``, or the row's own payload when it carries one)."""
-    batch = recent.take(row.actuator_pk, row.seq) if recent is not None else None
+    batch = recent.take(row.actuator_pk, row.seq, row.batch_id) if recent is not None else None
     if batch is None:
         if payload is None and isinstance(row, TelemetryBatch):
             payload = row.payload
@@ -97,7 +97,7 @@ def _decode_pending(
     session: Session, pending: Sequence[repository.PendingBatch], recent: RecentBatches | None
 ) -> list[LoggedBatch]:
     """Decode the batches, reading from the log only the payloads not held in ``recent``."""
-    held = {b.seq: recent.take(b.actuator_pk, b.seq) for b in pending} if recent is not None else {}
+    held = {b.seq: recent.take(b.actuator_pk, b.seq, b.batch_id) for b in pending} if recent is not None else {}
     missing = [b.seq for b in pending if held.get(b.seq) is None]
     stored = repository.payloads(session, pending[0].actuator_pk, missing) if missing else {}
     out = []

@@ -175,6 +175,9 @@ async def read_body(request: Request, limit: int, spool_bytes: int, reservation:
     spool: IO[bytes] | None = None if in_memory else _spool_file()
     if memory is not None and expected is not None:
         await reservation.take_async(expected)
+        # A body of declared length is read into one buffer of that size, each chunk copied
+        # once into its place (appending would grow and copy the buffer as it goes).
+        return await _read_declared(request, expected)
     size = 0
     try:
         async for chunk in request.stream():
@@ -198,6 +201,22 @@ async def read_body(request: Request, limit: int, spool_bytes: int, reservation:
         if spool is not None:
             spool.close()
         raise
+
+
+async def _read_declared(request: Request, expected: int) -> RequestBody:
+    """A body of ``expected`` bytes (its Content-Length, within the limits) into memory."""
+    memory = bytearray(expected)
+    size = 0
+    with memoryview(memory) as view:
+        async for chunk in request.stream():
+            end = size + len(chunk)
+            if end > expected:  # more than declared: the server's framing should never let it
+                raise PayloadTooLarge(f"body exceeds its declared length of {expected} bytes")
+            view[size:end] = chunk
+            size = end
+    if size < expected:  # the stream ended early (a disconnect is raised by the stream itself)
+        del memory[size:]
+    return RequestBody(memory, None, size)
 
 
 @functools.cache

@@ -16,11 +16,10 @@ from datetime import datetime
 from starlette.concurrency import run_in_threadpool
 
 from app.cache import TtlCache
-from app.codec import encode_columns
 from app.db import Database
 from app.errors import ActuatorDeleted, IdempotencyConflict, StaleBatch
 from app.fleet import service as fleet
-from app.ingest import TIME_COLUMN, ParsedBatch, TimeParams, client_seq_of, parse_body, parse_frame
+from app.ingest import ParsedBatch, TimeParams, client_seq_of, parse_body, parse_frame
 from app.telemetry.body import RELEASE_AFTER_BYTES, RequestBody, Reservation, release_memory
 from app.telemetry.repository import LoggedBatch, LogHead
 from app.telemetry.validation import DEFAULT_LIMITS, BatchLimits, check_batch, decoding_guard
@@ -65,7 +64,7 @@ def log_batch(
     come after the last logged frame (``client_seq``), and every batch after the stream's last
     sample in time.
     """
-    digest = batch.content_hash()
+    digest = batch.digest
     if prior is not None:
         if prior.content_hash != digest:
             raise IdempotencyConflict(
@@ -98,7 +97,7 @@ def log_batch(
         "t_last_s": t_last,
         "received_at": received_at,
         "end_of_run": batch.end_of_run,
-        "payload": encode_columns({TIME_COLUMN: batch.t_s, **batch.channels}),
+        "payload": batch.log_payload,
     }
     head.last_logged_seq = seq
     head.last_logged_t_s = t_last
@@ -161,6 +160,7 @@ def _parse_body(
         parsed = parse_body(body.data, media_type, params, list(channels), max_samples, limits.max_decoded_bytes,
                             reserve=reserve, release_body=release)
     check_batch(parsed, limits)
+    parsed.prepare_log()
     return parsed
 
 
@@ -235,4 +235,5 @@ def prepare_frame(
     with decoding_guard():
         client_seq, parsed = parse_frame(data, list(channels), max_samples, limits.max_decoded_bytes)
     check_batch(parsed, limits)
+    parsed.prepare_log()
     return client_seq, parsed

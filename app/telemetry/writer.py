@@ -157,9 +157,6 @@ class LogWriter:
             else:
                 if not outcome.replayed:
                     logged.append(item.actuator_pk)
-                    if self.recent is not None:
-                        b = item.batch
-                        self.recent.put(item.actuator_pk, outcome.seq, b.t_s, b.channels, b.end_of_run)
                 _settle(item.future, outcome)
         if logged and self.on_logged is not None:
             try:
@@ -168,9 +165,25 @@ class LogWriter:
                 log.exception("waking the processor failed")
 
     def _commit(self, group: list[_Append]) -> list[Ack | DomainError]:
+        outcomes: list[Ack | DomainError] = []
+        held: list[tuple[int, int]] = []  # the batches put in ``recent`` for this commit
+        try:
+            self._transaction(group, outcomes, held)
+        except BaseException:
+            if self.recent is not None:
+                self.recent.drop(held)
+            raise
+        if self.recent is not None:
+            self.recent.confirm(held)
+        return outcomes
+
+    def _transaction(self, group: list[_Append], outcomes: list[Ack | DomainError],
+                     held: list[tuple[int, int]]) -> None:
+        """Append the group in one transaction. Each new batch is put, decoded, in ``recent``
+        before the commit (the commit's NOTIFY may wake a processor at once); the caller
+        confirms them after the commit, or drops them if it failed."""
         from app.telemetry.service import log_batch
 
-        outcomes: list[Ack | DomainError] = []
         received_at = utcnow()
         with self.db.write() as s:
             heads = repository.lock_log_heads(s, sorted({i.actuator_pk for i in group}))
@@ -189,6 +202,11 @@ class LogWriter:
                     continue
                 if row is not None:
                     rows.append(row)
+                    if self.recent is not None:
+                        b = item.batch
+                        put = self.recent.put(item.actuator_pk, ack.seq, b.batch_id, b.t_s, b.channels, b.end_of_run)
+                        if put is not None:
+                            held.append(put)
                     # The same batch id again later in this group is a retry of this one.
                     priors[key] = LoggedBatch(ack.seq, ack.batch_id, str(row["content_hash"]), ack.n_samples,
                                               ack.t_first_s, ack.t_last_s, ack.received_at, ack.end_of_run)
@@ -198,7 +216,6 @@ class LogWriter:
             repository.advance_heads(s, [heads[pk] for pk in sorted(advanced)])
             if self.notify_channel is not None and advanced:
                 repository.notify(s, self.notify_channel, f"{self.origin} " + ",".join(map(str, sorted(advanced))))
-        return outcomes
 
 
 def _settle(future: Future[Ack], outcome: Ack | BaseException) -> None:
