@@ -335,17 +335,12 @@ class Processor:
             "hot": self.hot,
         }
 
-    def _each(self, session: Session, pks: list[int]) -> Iterator[tuple[int, service.GroupLoad, int]]:
-        """The streams of a group with their rows (read a few streams at a time) and the
-        samples the group may still take; stops at the group's limits."""
-        loaded = service.GroupLoad({}, {}, {})
-        max_batches = self.settings.processor_max_batches_per_txn
-        for i, pk in enumerate(pks):
-            if i % LOAD_CHUNK == 0:  # the next streams' rows, read together
-                loaded = service.load_group(
-                    session, pks[i : i + LOAD_CHUNK], is_sqlite=self.db.is_sqlite, max_batches=max_batches
-                )
-            yield i, loaded, pk
+    def _load(self, session: Session, pks: list[int], i: int, loaded: service.GroupLoad) -> service.GroupLoad:
+        """The rows of the group's streams from the i-th on, read a few streams at a time."""
+        if i % LOAD_CHUNK:
+            return loaded
+        return service.load_group(session, pks[i : i + LOAD_CHUNK], is_sqlite=self.db.is_sqlite,
+                                  max_batches=self.settings.processor_max_batches_per_txn)
 
     def _over(self, i: int, t0: float, budget: int) -> bool:
         # Bound the group's length: its write transaction holds the database's write lock
@@ -360,9 +355,11 @@ class Processor:
         prepared: list[service.PreparedApply] = []
         budget = self.settings.processor_max_samples_per_txn
         limits = self._limits()
-        for i, loaded, pk in self._each(session, pks):
+        loaded = service.GroupLoad({}, {}, {})
+        for i, pk in enumerate(pks):
             if self._over(i, t0, budget):
                 return prepared, pks[i:]
+            loaded = self._load(session, pks, i, loaded)
             try:
                 prep = service.prepare_apply(session, pk, max_samples=budget, recent=self.recent, loaded=loaded,
                                              **limits)
@@ -385,9 +382,11 @@ class Processor:
         results: list[ApplyResult] = []
         budget = self.settings.processor_max_samples_per_txn
         limits = self._limits()
-        for i, loaded, pk in self._each(session, pks):
+        loaded = service.GroupLoad({}, {}, {})
+        for i, pk in enumerate(pks):
             if self._over(i, t0, budget):
                 return results, pks[i:]
+            loaded = self._load(session, pks, i, loaded)
             try:
                 with contextlib.nullcontext() if alone else session.begin_nested():
                     res = service.apply_pending(session, pk, max_samples=budget, recent=self.recent,
