@@ -65,12 +65,13 @@ def make_engine(url: str, *, sqlite_synchronous: str = "FULL", echo: bool = Fals
 
 def _install_sqlite_hooks(engine: Engine, synchronous: str) -> None:
     @event.listens_for(engine, "connect")
-    def _connect(dbapi_conn: Any, _: Any) -> None:
+    def _connect(dbapi_conn: Any, record: Any) -> None:
         # Let SQLAlchemy, not pysqlite, emit BEGIN (the documented pysqlite workaround).
         dbapi_conn.isolation_level = None
         cur = dbapi_conn.cursor()
         cur.execute("PRAGMA journal_mode=WAL")
         cur.execute(f"PRAGMA synchronous={synchronous}")
+        record.info["sqlite_synchronous"] = synchronous
         cur.execute("PRAGMA foreign_keys=ON")
         cur.execute("PRAGMA busy_timeout=60000")
         cur.close()
@@ -80,8 +81,13 @@ def _install_sqlite_hooks(engine: Engine, synchronous: str) -> None:
         opts = conn.get_execution_options()
         mode = opts.get("sqlite_begin", "DEFERRED")
         if mode == "IMMEDIATE":
-            # Per transaction (it cannot change inside one): see Database.write(durable=...).
-            conn.exec_driver_sql(f"PRAGMA synchronous={opts.get('sqlite_synchronous', synchronous)}")
+            # Per transaction (it cannot change inside one): see Database.write(durable=...);
+            # set only when this connection's last transaction had another.
+            wanted = opts.get("sqlite_synchronous", synchronous)
+            info = conn.connection.info
+            if info.get("sqlite_synchronous") != wanted:
+                conn.exec_driver_sql(f"PRAGMA synchronous={wanted}")
+                info["sqlite_synchronous"] = wanted
         conn.exec_driver_sql(f"BEGIN {mode}")
 
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Mapping
 from datetime import datetime, timedelta
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 from sqlalchemy.orm import Session
@@ -31,6 +31,9 @@ from app.models import (
 from app.pagination import Order
 from estimators.base import STATUS_ORDER, ConfigError, worst_status
 from estimators.registry import ACTUATOR_KINDS, ESTIMATORS
+
+if TYPE_CHECKING:
+    from app.processing.repository import EstimatorRow
 
 FleetSort = Literal["status", "tail", "updated", "rul"]
 
@@ -206,7 +209,7 @@ def state_layout(value: Any) -> Any:
     return type(value).__name__
 
 
-def _restart(er: EstimatorState, reason: str) -> None:
+def _restart(er: EstimatorState | EstimatorRow, reason: str) -> None:
     er.state = None
     er.status, er.reasons = "learning", [reason]
     er.diagnosis_t_s, er.diagnosis = None, None
@@ -334,7 +337,7 @@ def config_versions(
 RESETTING_ACTIONS = frozenset({"repair", "replacement"})
 
 
-def start_baseline(er: EstimatorState, baseline: int) -> None:
+def start_baseline(er: EstimatorState | EstimatorRow, baseline: int) -> None:
     """Restart an estimator from its initial state as ``baseline`` (a repaired or replaced
     part): its earlier outputs stay, labelled with the earlier baseline."""
     _restart(er, f"new baseline {baseline} after maintenance")

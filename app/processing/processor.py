@@ -260,58 +260,36 @@ class Processor:
 
     def _apply_group(self, pks: list[int], replayed: dict[int, set[str]]) -> tuple[list[int], int]:
         """One transaction over some streams: the streams to apply again, and the batches
-        applied."""
+        applied.
+
+        On SQLite the streams are read and their estimators run in a read transaction first,
+        outside the database's one write lock (which the log writer's acknowledgements wait
+        for); the write transaction then only checks that each stream's rows are as read
+        and stores the outcome (a stream whose rows changed meanwhile is applied again under
+        the lock). On PostgreSQL one transaction holds the streams' row locks throughout.
+        """
         t0 = time.perf_counter()
         results: list[ApplyResult] = []
         errors: list[tuple[int, Exception]] = []
         idle: list[int] = []
-        budget = self.settings.processor_max_samples_per_txn
         left: list[int] = []
-        max_batches = self.settings.processor_max_batches_per_txn
-        ready_kinds = self.ready_kinds()
         # One stream alone needs no savepoint: its error rolls the whole transaction back.
         alone = len(pks) == 1
         try:
-            # Not waiting for the disk: an apply lost in a power cut is redone from the log.
-            with self.db.write(durable=False) as s:
-                loaded = service.GroupLoad({}, {}, {})
-                for i, pk in enumerate(pks):
-                    # The transaction holds the database's write lock (SQLite: the only one), so
-                    # the log writer's acknowledgements wait behind it: bound its length.
-                    if budget <= 0 or (i and time.perf_counter() - t0 > self.settings.processor_txn_budget_s):
-                        left = pks[i:]
-                        break
-                    if i % LOAD_CHUNK == 0:  # the next streams' rows, read together
-                        loaded = service.load_group(
-                            s, pks[i : i + LOAD_CHUNK], is_sqlite=self.db.is_sqlite, max_batches=max_batches
-                        )
-                    try:
-                        with contextlib.nullcontext() if alone else s.begin_nested():
-                            res = service.apply_pending(
-                                s,
-                                pk,
-                                max_samples=min(budget, self.settings.processor_max_samples_per_txn),
-                                max_batches=max_batches,
-                                store_outputs=self.settings.store_sample_outputs,
-                                is_sqlite=self.db.is_sqlite,
-                                recent=self.recent,
-                                ready_kinds=ready_kinds,
-                                loaded=loaded,
-                                hot=self.hot,
-                            )
-                    except Exception as exc:  # this stream's savepoint is rolled back
-                        errors.append((pk, exc))
-                        if alone:
-                            raise _StreamFailed from exc
-                        continue
-                    if res is None:
-                        idle.append(pk)
-                        continue
-                    budget -= res.samples
-                    results.append(res)
-                if self.applied_channel is not None:
-                    for res in results:
-                        self._announce(s, res)
+            if self.db.is_sqlite:
+                with self.db.read() as rs:
+                    prepared, left = self._prepare(rs, pks, t0, errors, idle)
+                if prepared:
+                    # Not waiting for the disk: an apply lost in a power cut is redone from the log.
+                    with self.db.write(durable=False) as s:
+                        current = service.load_current(s, [p.result.actuator_pk for p in prepared], is_sqlite=True)
+                        results = self._store(s, prepared, errors, alone, current)
+            else:
+                with self.db.write(durable=False) as s:
+                    results, left = self._apply_locked(s, pks, t0, errors, idle, alone)
+                    if self.applied_channel is not None:
+                        for res in results:
+                            self._announce(s, res)
         except _StreamFailed:  # the one stream's error (in errors): its transaction is rolled back
             results.clear()
         except Exception as commit_exc:  # the commit failed: no stream of the group was applied
@@ -347,6 +325,113 @@ class Processor:
         if idle and not self.db.is_sqlite:
             self._recheck_busy(idle)
         return again, sum(r.batches for r in results)
+
+    def _limits(self) -> dict[str, Any]:
+        return {
+            "max_batches": self.settings.processor_max_batches_per_txn,
+            "store_outputs": self.settings.store_sample_outputs,
+            "is_sqlite": self.db.is_sqlite,
+            "ready_kinds": self.ready_kinds(),
+            "hot": self.hot,
+        }
+
+    def _load(self, session: Session, pks: list[int], i: int, loaded: service.GroupLoad) -> service.GroupLoad:
+        """The rows of the group's streams from the i-th on, read a few streams at a time."""
+        if i % LOAD_CHUNK:
+            return loaded
+        return service.load_group(session, pks[i : i + LOAD_CHUNK], is_sqlite=self.db.is_sqlite,
+                                  max_batches=self.settings.processor_max_batches_per_txn)
+
+    def _over(self, i: int, t0: float, budget: int) -> bool:
+        # Bound the group's length: its write transaction holds the database's write lock
+        # (SQLite) or the streams' locks (PostgreSQL), and every stream of it waits for its commit.
+        return budget <= 0 or (i > 0 and time.perf_counter() - t0 > self.settings.processor_txn_budget_s)
+
+    def _prepare(
+        self, session: Session, pks: list[int], t0: float, errors: list[tuple[int, Exception]], idle: list[int]
+    ) -> tuple[list[service.PreparedApply], list[int]]:
+        """Compute the applies of the streams (nothing written): the prepared ones, and the
+        streams left for the next group by the limits."""
+        prepared: list[service.PreparedApply] = []
+        budget = self.settings.processor_max_samples_per_txn
+        limits = self._limits()
+        loaded = service.GroupLoad({}, {}, {})
+        for i, pk in enumerate(pks):
+            if self._over(i, t0, budget):
+                return prepared, pks[i:]
+            loaded = self._load(session, pks, i, loaded)
+            try:
+                prep = service.prepare_apply(session, pk, max_samples=budget, recent=self.recent, loaded=loaded,
+                                             **limits)
+            except Exception as exc:  # nothing of it was written
+                errors.append((pk, exc))
+                continue
+            if prep is None:
+                idle.append(pk)
+                continue
+            budget -= prep.result.samples
+            prepared.append(prep)
+        return prepared, []
+
+    def _apply_locked(
+        self, session: Session, pks: list[int], t0: float, errors: list[tuple[int, Exception]], idle: list[int],
+        alone: bool,
+    ) -> tuple[list[ApplyResult], list[int]]:
+        """Apply the streams in this transaction, which holds their row locks (PostgreSQL),
+        each inside its own savepoint; the results and the streams left by the limits."""
+        results: list[ApplyResult] = []
+        budget = self.settings.processor_max_samples_per_txn
+        limits = self._limits()
+        loaded = service.GroupLoad({}, {}, {})
+        for i, pk in enumerate(pks):
+            if self._over(i, t0, budget):
+                return results, pks[i:]
+            loaded = self._load(session, pks, i, loaded)
+            try:
+                with contextlib.nullcontext() if alone else session.begin_nested():
+                    res = service.apply_pending(session, pk, max_samples=budget, recent=self.recent,
+                                                loaded=loaded, **limits)
+            except Exception as exc:  # this stream's savepoint is rolled back
+                errors.append((pk, exc))
+                if alone:
+                    raise _StreamFailed from exc
+                continue
+            if res is None:
+                idle.append(pk)
+                continue
+            budget -= res.samples
+            results.append(res)
+        return results, []
+
+    def _store(
+        self,
+        session: Session,
+        prepared: list[service.PreparedApply],
+        errors: list[tuple[int, Exception]],
+        alone: bool,
+        current: service.GroupLoad,
+    ) -> list[ApplyResult]:
+        """Store applies prepared outside this transaction (SQLite), each in its own savepoint
+        (an error rolls back that stream only); a stream whose rows are no longer those it was
+        computed from is applied again here, under the write lock."""
+        results: list[ApplyResult] = []
+        for prep in prepared:
+            pk = prep.result.actuator_pk
+            try:
+                with contextlib.nullcontext() if alone else session.begin_nested():
+                    if service.still_current(prep, current):
+                        res: ApplyResult | None = service.store_apply(session, prep)
+                    else:
+                        res = service.apply_pending(session, pk, max_samples=prep.result.samples or 1,
+                                                    **self._limits())
+            except Exception as exc:  # this stream's savepoint is rolled back
+                errors.append((pk, exc))
+                if alone:
+                    raise _StreamFailed from exc
+                continue
+            if res is not None:
+                results.append(res)
+        return results
 
     def _recheck_busy(self, pks: list[int]) -> None:
         """PostgreSQL: a stream found idle may have been held by another worker (``SKIP

@@ -4,7 +4,7 @@ applying them produced, mark a stream failed, and read applied results back."""
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from datetime import UTC, datetime
 from typing import Any, cast
 
@@ -43,60 +43,127 @@ class PendingBatch:
     end_of_run: bool
 
 
-_PENDING_COLUMNS = (
-    TelemetryBatch.actuator_pk,
-    TelemetryBatch.seq,
-    TelemetryBatch.batch_id,
-    TelemetryBatch.n_samples,
-    TelemetryBatch.t_first_s,
-    TelemetryBatch.t_last_s,
-    TelemetryBatch.end_of_run,
-)
+@dataclass
+class StreamRow:
+    """The columns of a stream's row that an apply reads and writes (read and written with Core
+    statements: the ORM's loading, identity map and flush were a third of a small apply)."""
 
+    actuator_pk: int
+    last_applied_seq: int
+    last_applied_t_s: float | None
+    status: str
+    failure: str | None
+    rul_t_s: float | None
+    rul_q05_s: float | None
+    rul_q50_s: float | None
+    updated_at: datetime | None = None
+
+
+@dataclass
+class EstimatorRow:
+    """An estimator row of a stream as an apply reads and writes it (attribute names as on
+    :class:`~app.models.EstimatorState`, so that the fleet's baseline rules apply to either)."""
+
+    actuator_pk: int
+    estimator: str
+    config: dict[str, Any]
+    state: bytes | None
+    applied_seq: int
+    status: str
+    reasons: list[str]
+    diagnosis_t_s: float | None
+    diagnosis: dict[str, Any] | None
+    config_version: int
+    baseline: int
+    reset_at_seq: int | None
+    reset_baseline: int | None
+
+
+_STREAMS = cast(Table, Stream.__table__)
+_ESTIMATOR_STATES = cast(Table, EstimatorState.__table__)
+_BATCHES = cast(Table, TelemetryBatch.__table__)
+_S, _E, _T = _STREAMS.c, _ESTIMATOR_STATES.c, _BATCHES.c
+_STREAM_FIELDS = tuple(f.name for f in fields(StreamRow))
+_ESTIMATOR_FIELDS = tuple(f.name for f in fields(EstimatorRow))
 
 # The statements of every apply, built once: building a statement costs more than running it
-# on SQLite (and their compiled forms are cached by these very objects).
-_CLAIM = select(Stream).where(Stream.actuator_pk.in_(bindparam("pks", expanding=True))).order_by(Stream.actuator_pk)
+# on SQLite (and their compiled forms are cached by these very objects). Core statements on
+# the session's connection: no ORM compile, loading or unit of work per apply.
+_CLAIM = (
+    select(*(_S[name] for name in _STREAM_FIELDS))
+    .where(_S.actuator_pk.in_(bindparam("pks", expanding=True)))
+    .order_by(_S.actuator_pk)
+)
 _CLAIM_SKIP_LOCKED = _CLAIM.with_for_update(skip_locked=True)
 _ESTIMATORS = (
-    select(EstimatorState)
-    .where(EstimatorState.actuator_pk.in_(bindparam("pks", expanding=True)))
-    .order_by(EstimatorState.actuator_pk, EstimatorState.estimator)
+    select(*(_E[name] for name in _ESTIMATOR_FIELDS))
+    .where(_E.actuator_pk.in_(bindparam("pks", expanding=True)))
+    .order_by(_E.actuator_pk, _E.estimator)
 )
 _PENDING = (
-    select(*_PENDING_COLUMNS)
-    .join(Stream, Stream.actuator_pk == TelemetryBatch.actuator_pk)
+    select(_T.actuator_pk, _T.seq, _T.batch_id, _T.n_samples, _T.t_first_s, _T.t_last_s, _T.end_of_run)
+    .join(_STREAMS, _S.actuator_pk == _T.actuator_pk)
     .where(
-        TelemetryBatch.actuator_pk.in_(bindparam("pks", expanding=True)),
-        TelemetryBatch.seq > Stream.last_applied_seq,
-        TelemetryBatch.seq <= Stream.last_applied_seq + bindparam("window"),
+        _T.actuator_pk.in_(bindparam("pks", expanding=True)),
+        _T.seq > _S.last_applied_seq,
+        _T.seq <= _S.last_applied_seq + bindparam("window"),
     )
-    .order_by(TelemetryBatch.actuator_pk, TelemetryBatch.seq)
+    .order_by(_T.actuator_pk, _T.seq)
 )
-_PAYLOADS = select(TelemetryBatch.seq, TelemetryBatch.payload).where(
-    TelemetryBatch.actuator_pk == bindparam("pk"), TelemetryBatch.seq.between(bindparam("lo"), bindparam("hi"))
+_PAYLOADS = select(_T.seq, _T.payload).where(
+    _T.actuator_pk == bindparam("pk"), _T.seq.between(bindparam("lo"), bindparam("hi"))
+)
+_STREAM_WRITTEN = ("last_applied_seq", "last_applied_t_s", "status", "updated_at", "rul_t_s", "rul_q05_s",
+                   "rul_q50_s")
+_UPDATE_STREAM = (
+    update(_STREAMS)
+    .where(_S.actuator_pk == bindparam("k_pk"))
+    .values({name: bindparam(f"v_{name}", type_=_S[name].type) for name in _STREAM_WRITTEN})
+)
+_ESTIMATOR_WRITTEN = ("state", "applied_seq", "status", "reasons", "diagnosis_t_s", "diagnosis", "baseline",
+                      "reset_at_seq", "reset_baseline")
+_UPDATE_ESTIMATOR = (
+    update(_ESTIMATOR_STATES)
+    .where(_E.actuator_pk == bindparam("k_pk"), _E.estimator == bindparam("k_estimator"))
+    .values({name: bindparam(f"v_{name}", type_=_E[name].type) for name in _ESTIMATOR_WRITTEN})
 )
 
 
-def claim_many(session: Session, actuator_pks: Sequence[int], *, is_sqlite: bool) -> dict[int, Stream]:
+def claim_many(session: Session, actuator_pks: Sequence[int], *, is_sqlite: bool) -> dict[int, StreamRow]:
     """Lock the streams for this transaction, in one query; those another worker holds are
     left out (PostgreSQL: ``FOR UPDATE SKIP LOCKED``, which never waits, so no lock order can
     deadlock; on SQLite ``BEGIN IMMEDIATE`` already serializes writers)."""
     stmt = _CLAIM if is_sqlite else _CLAIM_SKIP_LOCKED
-    return {st.actuator_pk: st for st in session.scalars(stmt, {"pks": list(actuator_pks)})}
+    rows = session.connection().execute(stmt, {"pks": list(actuator_pks)})
+    return {int(r[0]): StreamRow(*r) for r in rows}
 
 
-def estimators_of(session: Session, actuator_pks: Sequence[int]) -> dict[int, list[EstimatorState]]:
+def estimators_of(session: Session, actuator_pks: Sequence[int]) -> dict[int, list[EstimatorRow]]:
     """Each stream's estimator rows, by estimator name, in one query."""
-    out: dict[int, list[EstimatorState]] = {pk: [] for pk in actuator_pks}
+    out: dict[int, list[EstimatorRow]] = {pk: [] for pk in actuator_pks}
     if out:
-        for er in session.scalars(_ESTIMATORS, {"pks": list(out)}):
+        for r in session.connection().execute(_ESTIMATORS, {"pks": list(out)}):
+            er = EstimatorRow(*r)
+            er.reasons = list(er.reasons or [])
             out[er.actuator_pk].append(er)
     return out
 
 
+def store_applied(session: Session, stream: StreamRow, est_rows: Sequence[EstimatorRow]) -> None:
+    """Write back what an apply changed: the stream's row and its estimators' rows."""
+    conn = session.connection()
+    conn.execute(_UPDATE_STREAM, {"k_pk": stream.actuator_pk,
+                                  **{f"v_{name}": getattr(stream, name) for name in _STREAM_WRITTEN}})
+    if est_rows:
+        conn.execute(_UPDATE_ESTIMATOR, [
+            {"k_pk": er.actuator_pk, "k_estimator": er.estimator,
+             **{f"v_{name}": getattr(er, name) for name in _ESTIMATOR_WRITTEN}}
+            for er in est_rows
+        ])
+
+
 def pending_of(
-    session: Session, streams: Sequence[Stream], max_batches: int
+    session: Session, streams: Sequence[StreamRow], max_batches: int
 ) -> dict[int, list[PendingBatch]]:
     """Each stream's next logged batches after its applied mark, in stream order, at most
     ``max_batches + 1`` (the one more tells whether a limit stops the run), in one query.
@@ -105,7 +172,7 @@ def pending_of(
     out: dict[int, list[PendingBatch]] = {st.actuator_pk: [] for st in streams}
     if not out:
         return out
-    for pk, seq, batch_id, n, t_first, t_last, eor in session.execute(
+    for pk, seq, batch_id, n, t_first, t_last, eor in session.connection().execute(
         _PENDING, {"pks": list(out), "window": max_batches + 1}
     ):
         out[pk].append(PendingBatch(pk, seq, batch_id, n, t_first, t_last, bool(eor)))
@@ -113,7 +180,7 @@ def pending_of(
 
 
 def take_pending(
-    stream: Stream, candidates: Sequence[PendingBatch], *, max_samples: int, max_batches: int
+    stream: StreamRow, candidates: Sequence[PendingBatch], *, max_samples: int, max_batches: int
 ) -> tuple[list[PendingBatch], bool]:
     """The batches of ``candidates`` (:func:`pending_of`) that follow the applied mark without
     a gap, up to ``max_samples`` samples (at least one batch) and ``max_batches``; and whether
@@ -135,7 +202,7 @@ def payloads(session: Session, actuator_pk: int, seqs: Sequence[int]) -> dict[in
     if not seqs:
         return {}
     wanted = set(seqs)
-    rows = session.execute(_PAYLOADS, {"pk": actuator_pk, "lo": min(seqs), "hi": max(seqs)})
+    rows = session.connection().execute(_PAYLOADS, {"pk": actuator_pk, "lo": min(seqs), "hi": max(seqs)})
     return {int(seq): payload for seq, payload in rows if seq in wanted}
 
 

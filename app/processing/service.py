@@ -5,7 +5,7 @@ results back."""
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import Enum
 
 from sqlalchemy.orm import Session
@@ -116,8 +116,8 @@ class GroupLoad:
     the claimed streams (those another worker holds are missing), their estimator rows and
     their next logged batches (without payloads)."""
 
-    streams: dict[int, Stream]
-    estimators: dict[int, list[EstimatorState]]
+    streams: dict[int, repository.StreamRow]
+    estimators: dict[int, list[repository.EstimatorRow]]
     candidates: dict[int, list[repository.PendingBatch]]
 
 
@@ -131,7 +131,7 @@ def load_group(session: Session, actuator_pks: Sequence[int], *, is_sqlite: bool
     )
 
 
-def _label(rows: Rows, est_rows: Sequence[EstimatorState]) -> None:
+def _label(rows: Rows, est_rows: Sequence[EstimatorState | repository.EstimatorRow]) -> None:
     """Stamp every output row with the config version and baseline of its estimator."""
     labels = {er.estimator: (er.config_version, er.baseline) for er in est_rows}
     for items in (rows.health, rows.outputs, rows.events, rows.rul):
@@ -140,7 +140,7 @@ def _label(rows: Rows, est_rows: Sequence[EstimatorState]) -> None:
 
 
 def _at_baseline_boundary(
-    stream: Stream, est_rows: Sequence[EstimatorState], pending: list[repository.PendingBatch]
+    stream: repository.StreamRow, est_rows: Sequence[repository.EstimatorRow], pending: list[repository.PendingBatch]
 ) -> list[repository.PendingBatch]:
     """The batches of one baseline: a maintenance action recorded while batches were pending
     restarts the estimators at ``reset_at_seq``. Batches before it are applied first (to the
@@ -160,7 +160,7 @@ def _at_baseline_boundary(
     return pending
 
 
-def _set_rul(stream: Stream, rul_rows: Sequence[dict[str, object]]) -> None:
+def _set_rul(stream: Stream | repository.StreamRow, rul_rows: Sequence[dict[str, object]]) -> None:
     best = most_urgent_rul(rul_rows)
     if best is not None:
         stream.rul_t_s = best["t_s"]
@@ -168,7 +168,21 @@ def _set_rul(stream: Stream, rul_rows: Sequence[dict[str, object]]) -> None:
         stream.rul_q50_s = best["q50_s"]
 
 
-def apply_pending(
+@dataclass
+class PreparedApply:
+    """An apply computed but not stored: the rows to write, the stream's and its estimators'
+    rows as they will be, and as they were read (:func:`still_current` compares them with the
+    rows at store time)."""
+
+    stream: repository.StreamRow
+    est_rows: list[repository.EstimatorRow]
+    read_stream: repository.StreamRow
+    read_est_rows: list[repository.EstimatorRow]
+    rows: Rows
+    result: ApplyResult
+
+
+def prepare_apply(
     session: Session,
     actuator_pk: int,
     *,
@@ -180,24 +194,16 @@ def apply_pending(
     ready_kinds: frozenset[str] | None = None,
     loaded: GroupLoad | None = None,
     hot: HotStates | None = None,
-) -> ApplyResult | None:
-    """Apply the next pending batches of one stream inside the caller's transaction: claim,
-    load, run the estimators (pure), store outputs, states and the applied mark together.
+) -> PreparedApply | None:
+    """Read a stream's next pending batches and run its estimators over them (pure), writing
+    nothing: :func:`store_apply` writes the outcome. :func:`apply_pending` runs both in one
+    transaction; the processor on SQLite runs this one in a read transaction, outside the
+    database's one write lock, and stores in a short write transaction when the rows read
+    are :func:`still_current` there.
 
-    ``hot`` holds the states this process stored last (used only when the rows read now
-    hold exactly those bytes, :mod:`app.processing.hot`).
-
-    ``loaded`` is what :func:`load_group` read for a group of streams this one belongs to
-    (loaded with the same ``max_batches``, in this transaction); without it the stream is
-    claimed and loaded alone.
-
-    Returns None when another worker holds the stream, the stream is failed, nothing is
-    pending, or an estimator of the stream is of a kind outside ``ready_kinds`` (its kernels
-    are still compiling; None means every kind is ready).
-
-    Raises:
-        StateUnreadable: an estimator's state has a version this build cannot read (nothing
-            is written; the caller replays that estimator or marks the stream failed).
+    Arguments and the None cases as :func:`apply_pending`. ``hot`` receives the new states
+    before they are stored: an entry whose store never commits does not match the row, and is
+    not used (:mod:`app.processing.hot`).
     """
     if loaded is None:
         loaded = load_group(session, [actuator_pk], is_sqlite=is_sqlite, max_batches=max_batches)
@@ -212,6 +218,7 @@ def apply_pending(
     )
     if not taken:
         return None
+    read_stream, read_est_rows = replace(stream), [replace(er) for er in est_rows]
     pending = _at_baseline_boundary(stream, est_rows, taken)
     held = [
         runner_of(hot, actuator_pk, er.estimator, er.config, er.state, er.status, tuple(er.reasons),
@@ -229,7 +236,6 @@ def apply_pending(
 
     now = utcnow()
     _label(step.rows, est_rows)
-    repository.insert_rows(session, step.rows)
     for er, runner, known in zip(est_rows, step.runners, verified, strict=True):
         er.state = runner.kind.dump_state(runner.state)
         if hot is not None:
@@ -243,7 +249,6 @@ def apply_pending(
     stream.last_applied_t_s = pending[-1].t_last_s
     stream.status = step.status
     stream.updated_at = now
-    session.flush()
     result = ApplyResult(
         batches=len(pending),
         samples=sum(b.n_samples for b in pending),
@@ -254,8 +259,72 @@ def apply_pending(
         status_after=stream.status,
         more=more or len(pending) < len(taken),  # the rest starts a new baseline
     )
-    events.record_apply(session, result)  # the fleet event log and alarms, in this transaction
-    return result
+    return PreparedApply(stream, est_rows, read_stream, read_est_rows, step.rows, result)
+
+
+def still_current(prepared: PreparedApply, current: GroupLoad) -> bool:
+    """Whether the stream's row and its estimators' rows, read again in the transaction that
+    stores ``prepared`` (:func:`load_current`), are exactly those it was computed from. Every
+    change to them (another apply, an admin rewind, a maintenance action, a config change, a
+    replay, a failed mark, a deletion) changes at least one column; logged batches after the
+    applied mark never change."""
+    pk = prepared.result.actuator_pk
+    return (current.streams.get(pk) == prepared.read_stream
+            and current.estimators.get(pk, []) == prepared.read_est_rows)
+
+
+def load_current(session: Session, actuator_pks: Sequence[int], *, is_sqlite: bool) -> GroupLoad:
+    """The streams' and estimators' rows as they are now (for :func:`still_current`)."""
+    streams = repository.claim_many(session, actuator_pks, is_sqlite=is_sqlite)
+    return GroupLoad(streams, repository.estimators_of(session, list(streams)), {})
+
+
+def store_apply(session: Session, prepared: PreparedApply) -> ApplyResult:
+    """Write a prepared apply in the caller's transaction: outputs, states, the applied mark,
+    and the fleet events and alarms it logs."""
+    repository.insert_rows(session, prepared.rows)
+    repository.store_applied(session, prepared.stream, prepared.est_rows)
+    events.record_apply(session, prepared.result)  # the fleet event log and alarms, in this transaction
+    return prepared.result
+
+
+def apply_pending(
+    session: Session,
+    actuator_pk: int,
+    *,
+    max_samples: int,
+    store_outputs: bool,
+    is_sqlite: bool,
+    max_batches: int = MAX_BATCHES_PER_QUERY,
+    recent: RecentBatches | None = None,
+    ready_kinds: frozenset[str] | None = None,
+    loaded: GroupLoad | None = None,
+    hot: HotStates | None = None,
+) -> ApplyResult | None:
+    """Apply the next pending batches of one stream inside the caller's transaction: claim,
+    load, run the estimators (pure), store outputs, states and the applied mark together
+    (:func:`prepare_apply`, then :func:`store_apply`).
+
+    ``hot`` holds the states this process stored last (used only when the rows read now
+    hold exactly those bytes, :mod:`app.processing.hot`).
+
+    ``loaded`` is what :func:`load_group` read for a group of streams this one belongs to
+    (loaded with the same ``max_batches``, in this transaction); without it the stream is
+    claimed and loaded alone.
+
+    Returns None when another worker holds the stream, the stream is failed, nothing is
+    pending, or an estimator of the stream is of a kind outside ``ready_kinds`` (its kernels
+    are still compiling; None means every kind is ready).
+
+    Raises:
+        StateUnreadable: an estimator's state has a version this build cannot read (nothing
+            is written; the caller replays that estimator or marks the stream failed).
+    """
+    prepared = prepare_apply(
+        session, actuator_pk, max_samples=max_samples, store_outputs=store_outputs, is_sqlite=is_sqlite,
+        max_batches=max_batches, recent=recent, ready_kinds=ready_kinds, loaded=loaded, hot=hot,
+    )
+    return None if prepared is None else store_apply(session, prepared)
 
 
 class Replay(Enum):

@@ -222,3 +222,19 @@ def test_wait_is_an_awaitable_resolved_by_the_commit() -> None:
     assert got9 == (False, "broken")
     assert not other_done
     assert hub.watched_streams() == []
+
+
+def test_each_write_transaction_has_its_own_durability(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """SQLite: a durable write after a recomputable one on the same pooled connection waits
+    for the disk again (``synchronous`` is set only when it changes, never left behind)."""
+    from sqlalchemy import text
+
+    from tests.conftest import migrated_sqlite
+
+    db = Database(migrated_sqlite(tmp_path / "sync.db"))
+    seen = []
+    for durable in (False, True, True, False, False, True):
+        with db.write(durable=durable) as s:
+            seen.append(s.execute(text("PRAGMA synchronous")).scalar())
+    db.dispose()
+    assert seen == [1, 2, 2, 1, 1, 2]  # NORMAL, FULL

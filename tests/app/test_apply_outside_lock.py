@@ -1,0 +1,130 @@
+"""Applies computed outside the write lock (SQLite): the estimators run while another writer
+holds the database's one write lock, and a stream whose rows changed between the computation
+and the store is applied again under the lock, so each batch is still applied once, in order."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+from sqlalchemy import select
+
+from app.db import Database
+from app.models import Actuator, HealthWindowRow, SampleOutputRow, Stream
+from app.processing import service
+from app.processing.processor import Processor
+from estimators.registry import ESTIMATORS
+from tests.app.conftest import Api, make_settings
+from tests.conftest import make_series
+
+BATCH = 250
+
+
+def _log(api: Api, act: str, n: int) -> None:
+    api.setup_actuator("N1", act)
+    s = make_series(n * BATCH, seed=5)
+    for k in range(n):
+        sl = slice(k * BATCH, (k + 1) * BATCH)
+        r = api.send_arrow("N1", act, f"b{k}", s.t_s[sl], {"current": s.current[sl], "voltage": s.voltage[sl]}, wait=0)
+        assert r.status_code == 202, r.text
+
+
+def _pk(db: Database, act: str) -> int:
+    with db.read() as s:
+        return int(s.scalar(select(Actuator.id).where(Actuator.actuator_id == act)))  # type: ignore[arg-type]
+
+
+def _applied(db: Database, pk: int) -> tuple[int, list[int], list[int]]:
+    """The stream's applied mark, and the seq of each stored per-sample output and window."""
+    with db.read() as s:
+        mark = int(s.scalar(select(Stream.last_applied_seq).where(Stream.actuator_pk == pk)))  # type: ignore[arg-type]
+        outs = list(s.scalars(select(SampleOutputRow.seq).where(SampleOutputRow.actuator_pk == pk)
+                              .order_by(SampleOutputRow.id)))
+        wins = list(s.scalars(select(HealthWindowRow.seq).where(HealthWindowRow.actuator_pk == pk)
+                              .order_by(HealthWindowRow.id)))
+    return mark, outs, wins
+
+
+def test_rows_changed_since_the_computation_are_applied_again_not_twice(api_noproc: Api, db_url: str) -> None:
+    """Another worker applies the stream between this one's computation and its store: the
+    store sees rows other than those it computed from and applies the next batch instead."""
+    _log(api_noproc, "raced", 2)
+    db = Database(db_url)
+    pk = _pk(db, "raced")
+    processor = Processor(db, make_settings(db_url, processor_max_batches_per_txn=1))
+    limits = {"max_batches": 1, "store_outputs": True, "is_sqlite": db.is_sqlite}
+    with db.read() as rs:
+        prepared = service.prepare_apply(rs, pk, max_samples=10**6, **limits)
+    assert prepared is not None and prepared.result.last_applied_seq == 1
+    with db.write() as s:  # the other worker, first to store batch 1
+        other = service.apply_pending(s, pk, max_samples=10**6, **limits)
+    assert other is not None and other.last_applied_seq == 1
+    with db.write() as s:
+        current = service.load_current(s, [pk], is_sqlite=db.is_sqlite)
+        assert not service.still_current(prepared, current)
+        results = processor._store(s, [prepared], [], True, current)
+    assert [r.last_applied_seq for r in results] == [2]
+    mark, outs, wins = _applied(db, pk)
+    db.dispose()
+    assert mark == 2
+    assert outs == [1, 2]  # each batch's outputs once
+    assert wins == [1, 2]
+
+
+def test_unchanged_rows_are_stored_as_computed(api_noproc: Api, db_url: str) -> None:
+    """Nothing happened between computation and store: the prepared apply is what is stored,
+    the same as one transaction doing both."""
+    _log(api_noproc, "calm", 2)
+    db = Database(db_url)
+    pk = _pk(db, "calm")
+    limits = {"max_batches": 1, "store_outputs": True, "is_sqlite": db.is_sqlite}
+    with db.read() as rs:
+        prepared = service.prepare_apply(rs, pk, max_samples=10**6, **limits)
+    assert prepared is not None
+    with db.write() as s:
+        assert service.still_current(prepared, service.load_current(s, [pk], is_sqlite=db.is_sqlite))
+        service.store_apply(s, prepared)
+    with db.write() as s:
+        service.apply_pending(s, pk, max_samples=10**6, **limits)
+    mark, outs, wins = _applied(db, pk)
+    db.dispose()
+    assert (mark, outs, wins) == (2, [1, 2], [1, 2])
+
+
+def test_estimators_run_while_another_writer_holds_the_lock(
+    api_noproc: Api, db_url: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """SQLite: the processor computes an apply without the write lock, so a log commit (here:
+    any writer holding the lock) does not wait for the estimators, only for the store."""
+    db = Database(db_url)
+    if not db.is_sqlite:
+        db.dispose()
+        pytest.skip("PostgreSQL applies under the streams' row locks; its writers do not share one lock")
+    _log(api_noproc, "busy", 1)
+    pk = _pk(db, "busy")
+    assert api_noproc.app.state.kernels_warm.wait(300)
+    fakf = ESTIMATORS["fakf"]
+    real_step = fakf.step
+    stepped = threading.Event()
+
+    def step(cfg, state, batch):  # type: ignore[no-untyped-def]
+        stepped.set()
+        return real_step(cfg, state, batch)
+
+    monkeypatch.setattr(fakf, "step", step)
+    processor = Processor(db, make_settings(db_url))
+    holder = db.write()
+    session = holder.__enter__()
+    session.connection()  # BEGIN IMMEDIATE: the file's write lock, and the process's mutex
+    worker = threading.Thread(target=processor.apply_streams, args=([pk],))
+    worker.start()
+    try:
+        ran_while_locked = stepped.wait(60)
+    finally:
+        holder.__exit__(None, None, None)
+    worker.join(60)
+    mark, outs, _ = _applied(db, pk)
+    db.dispose()
+    assert ran_while_locked
+    assert not worker.is_alive()
+    assert (mark, outs) == (1, [1])
