@@ -60,7 +60,7 @@ def load_config(drive: fs.Drive) -> dict[str, Any]:
         }
     # a switching load with random dwells: the ring covers 30 s of recent current in 20 ms
     # bins (finer than the shortest dwells worth counting), read as two levels and the observed
-    # dwell distribution
+    # dwell distribution, its mean dwells from the stream's dwell record (the default)
     return {
         "kind": "observed",
         "bin_samples": max(1, round(0.02 * drive.rate_hz)),
@@ -323,8 +323,9 @@ def drives_section(
         "Dn levels at 0.6 and 0.8 of it, RUL levels at 30 % and 10 % of the life, a prognosis "
         f"every 1/{PROGNOSES_PER_LIFE} of the life with {TRAJECTORIES} trajectories, and the "
         "load law (square: its own wave; mission: the recorded profile; telegraph: the "
-        "observed load: 30 s of recent current in 20 ms bins read as two levels and their dwell "
-        "distribution, the `dwells` model, since no periodic law exists). A: the true "
+        "observed load: 30 s of recent current in 20 ms bins read as two levels, the `dwells` "
+        "model, since no periodic law exists, with the mean dwells from the stream's dwell "
+        "record since its start, the default). A: the true "
         "alpha0 given; B: alpha0 estimated over the first 20 s (the default).",
         "",
         "Error and coverage count the prognoses made once the true Dn passed 20 % of the "
@@ -456,10 +457,14 @@ def reading(a_res: list[DriveResult], b_res: list[DriveResult]) -> list[str]:
         f"(3) Random telegraph load: median {_fmt(tele['median_err'])} %, 90th percentile "
         f"{_fmt(tele['p90_err'])} %, coverage {_fmt(tele['coverage'])} % (square wave: median "
         f"{_fmt(square['median_err'])} %, coverage {_fmt(square['coverage'])} %): the observed "
-        "load is read as two levels with the dwell distribution of the last 30 s (stratified "
-        "dwells in the future period, the sampling error of the observed mean cycle and the "
-        "randomness of the future cycles in the interval); 30 s hold 15-100 dwells, so the "
-        "mean cycle is known to 10-25 % and the median carries that error. "
+        "load is read as two levels, the shape of each level's dwell distribution from the "
+        "last 30 s and the mean dwells from the stream's record of every dwell since its start "
+        "(stratified dwells in the future period, the sampling error of the record's mean "
+        "cycle and the randomness of the future cycles in the interval). The 30 s alone hold "
+        "15-100 dwells (mean cycle known to 10-25 %); the record holds all of the life's. "
+        "The record also gives the shape of the dwell distribution (a histogram of the whole "
+        "dwells): at equal mean, regular dwells wear about 1.5 times as fast as exponential "
+        "ones, and the ring's few dwells miss the long tail. "
         f"(4) Mission profile: median {_fmt(mission['median_err'])} %, coverage "
         f"{_fmt(mission['coverage'])} %; its current changes in 20 ms steps, so at low sample "
         "rates few intervals hold no change and the calibration is refused "
