@@ -2,13 +2,21 @@
 model, and the time of a 1,000-trajectory RUL prognosis under several regimes.
 
 Prints figures measured side by side in one run; asserts nothing.
-Run: ``.venv/bin/python bench/bench_deterioration_ekf.py``.
+Run: ``.venv/bin/python bench/bench_deterioration_ekf.py``. ``--baseline DIR`` instead times the
+RUL cases and the default EKF of this tree and of another source tree (e.g. an extract of
+``main``) in alternating child processes, and prints both side by side with their ratio.
 """
 
 from __future__ import annotations
 
+import argparse
+import json
+import os
+import subprocess
+import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -178,7 +186,131 @@ def rul_cases() -> list[tuple[str, np.ndarray, np.ndarray, tuple[np.ndarray, np.
     return cases
 
 
+def cpu_best_of(fn: Callable[[], Any], repeats: int) -> float:
+    """Smallest CPU time of the calling thread over ``repeats`` calls (leaves out the time the
+    thread waits for a core on a shared machine)."""
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.thread_time()
+        fn()
+        best = min(best, time.thread_time() - t0)
+    return best
+
+
+def rul_timings(repeats: int = 5) -> dict[str, tuple[float, float | None]]:
+    """CPU seconds (best of ``repeats``) and q50 of each RUL case, widening of the defaults on."""
+    plant = FrictionDriveParams().as_array()
+    settings = rul.PrognosisSettings(n_trajectories=1000)
+    out: dict[str, tuple[float, float | None]] = {}
+    for label, x, cov, segments, alpha0 in rul_cases():
+
+        def run(
+            x: np.ndarray = x,
+            cov: np.ndarray = cov,
+            segments: tuple[np.ndarray, np.ndarray] = segments,
+            alpha0: float = alpha0,
+        ) -> Any:
+            return rul.prognose(
+                plant, alpha0, x, cov, 15.0, segments, settings, log_time_var=0.01,
+                walk_rel_var_per_s=1e-6, time_scale=1.02,
+            )  # fmt: skip
+
+        q50 = run().q50_s
+        out[f"RUL: {label}"] = (cpu_best_of(run, repeats), q50)
+    return out
+
+
+def ekf_default_timings(n: int = 300_000) -> dict[str, tuple[float, float | None]]:
+    """CPU seconds per sample of the defaults' kernel, of ``step`` on one batch of ``n`` samples
+    and on 10,000-sample batches (best of 5)."""
+    t, ch, _ = simulate_friction_drive(n / 1000.0, 1000.0, m=0.0005, seed=1)
+    config = de.parse_config({"alpha0": 10.0, "rul_every_s": None})
+    state0 = de.initial_state(config)
+    batch = Batch(t, ch)
+    chunks = [
+        Batch(t[i : i + 10_000], {k: v[i : i + 10_000] for k, v in ch.items()})
+        for i in range(0, n, 10_000)
+    ]
+
+    def kernel_only() -> None:
+        kern.ekf_batch(
+            config.kernel_vector, state0.vector.copy(), t, ch["current"], ch["motor_speed"],
+            ch["wheel_speed"],
+        )  # fmt: skip
+
+    def stream() -> None:
+        state = state0
+        for chunk in chunks:
+            state, _ = de.step(config, state, chunk)
+
+    return {
+        f"EKF defaults, kernel alone, {n}-sample batch (per sample)": (
+            cpu_best_of(kernel_only, 5) / n, None,
+        ),
+        f"EKF defaults, step(), {n}-sample batch (per sample)": (
+            cpu_best_of(lambda: de.step(config, state0, batch), 5) / n, None,
+        ),
+        "EKF defaults, step(), 10,000-sample batches (per sample)": (
+            cpu_best_of(stream, 5) / n, None,
+        ),
+    }  # fmt: skip
+
+
+_TREE_TIMING = """
+import importlib.util, json, sys
+spec = importlib.util.spec_from_file_location("bench_dekf", sys.argv[1])
+mod = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(mod)
+mod.de.warm_up()
+print(json.dumps({**mod.ekf_default_timings(), **mod.rul_timings()}))
+"""
+
+
+def tree_timings(tree: Path) -> dict[str, tuple[float, float | None]]:
+    """:func:`ekf_default_timings` and :func:`rul_timings` with ``tree``'s ``estimators`` (this
+    file's cases and timing, run in a child process)."""
+    env = {**os.environ, "PYTHONPATH": str(tree)}
+    res = subprocess.run(
+        [sys.executable, "-c", _TREE_TIMING, str(Path(__file__).resolve())],
+        cwd=tree, env=env, check=True, capture_output=True, text=True,
+    )  # fmt: skip
+    raw = json.loads(res.stdout.strip().splitlines()[-1])
+    return {k: (float(v[0]), v[1]) for k, v in raw.items()}
+
+
+def side_by_side(baseline: Path, rounds: int) -> None:
+    """This tree against ``baseline``, alternating, best of ``rounds`` child processes each."""
+    here = Path(__file__).resolve().parent.parent
+    best: dict[str, dict[str, tuple[float, float | None]]] = {"new": {}, "base": {}}
+    for _ in range(rounds):
+        for label, tree in (("base", baseline), ("new", here)):
+            for name, (secs, q50) in tree_timings(tree).items():
+                if secs < best[label].get(name, (float("inf"), None))[0]:
+                    best[label][name] = (secs, q50)
+    print(f"side by side with {baseline}, thread CPU time, best of {rounds} alternating runs")
+    width = max(len(k) for k in best["new"])
+    print(f"{'measure':<{width}}  {'base':>10}  {'new':>10}  ratio  q50 base -> new")
+    for name, (new, q_new) in best["new"].items():
+        old, q_old = best["base"].get(name, (float("nan"), None))
+        unit, scale = ("ns", 1e9) if name.startswith("EKF") else ("ms", 1e3)
+        q = "" if q_new is None and q_old is None else f"  {q_old} -> {q_new}"
+        print(
+            f"{name:<{width}}  {old * scale:7.1f} {unit}  {new * scale:7.1f} {unit}  "
+            f"{new / old:5.2f}{q}"
+        )
+
+
 def main() -> None:
+    ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
+    ap.add_argument(
+        "--baseline", type=Path, default=None,
+        help="another source tree: time the RUL cases and the default EKF of both, side by side",
+    )  # fmt: skip
+    ap.add_argument("--rounds", type=int, default=3, help="alternating runs per tree (--baseline)")
+    args = ap.parse_args()
+    if args.baseline is not None:
+        side_by_side(args.baseline.resolve(), args.rounds)
+        return
     de.warm_up()
     n_long = 1_000_000
     t, ch, _ = simulate_friction_drive(n_long / 1000.0, 1000.0, m=0.0005, seed=1)
@@ -288,7 +420,12 @@ def main() -> None:
             5,
         )
         q50 = "-" if res.q50_s is None else f"{res.q50_s:.4g} s"
-        rows.append((f"RUL, 1,000 trajectories: {label}", f"{s_rul * 1e3:8.1f} ms  (q50 {q50})"))
+        rows.append(
+            (
+                f"RUL, 1,000 trajectories: {label}",
+                f"{s_rul * 1e3:8.1f} ms  (q50 {q50}, {res.propagation})",
+            )
+        )
     width = max(len(r[0]) for r in rows)
     print(f"{'measure':<{width}}  value")
     print("-" * (width + 30))

@@ -18,6 +18,7 @@ normalized deterioration ``Dn = 1 - alpha / alpha0`` reaches ``failure_dn``; RUL
 
 from __future__ import annotations
 
+import itertools
 import math
 import struct
 from dataclasses import dataclass, replace
@@ -603,7 +604,10 @@ class PrognosisSettings:
         eps_jump: change of ln(alpha) covered by one cycle jump.
         table_min_segments: a load of at least this many segments per period propagates the
             Monte Carlo samples from a shared table of the per-period wear
-            (``rul_times_tabulated``); fewer, each sample period by period.
+            (``rul_times_tabulated``); fewer, from a response surface fitted to propagated
+            design points (:func:`fitted_times`) or each sample period by period.
+        fit_min_trajectories: fewest trajectories for which the response surface is tried
+            (below, its design and check propagations cost about as much as all samples).
     """
 
     failure_dn: float = 0.9
@@ -614,6 +618,7 @@ class PrognosisSettings:
     eps_seg: float = 0.01
     eps_jump: float = 0.25
     table_min_segments: int = 64
+    fit_min_trajectories: int = 200
 
 
 @dataclass(frozen=True)
@@ -628,6 +633,9 @@ class PrognosisResult:
         reached_fraction: fraction of trajectories that reached the threshold.
         alpha_failure: alpha at the threshold, ``alpha0 (1 - failure_dn)``.
         entropy: the seed sequence entropy used, ``[seed, bits of t_s]``.
+        propagation: how the Monte Carlo samples were propagated: ``"table"`` (the per-period
+            wear table), ``"fitted"`` (the response surface, :func:`fitted_times`) or
+            ``"exact"`` (each sample period by period).
     """
 
     times_s: FloatArray
@@ -641,6 +649,7 @@ class PrognosisResult:
     reached_fraction: float
     alpha_failure: float
     entropy: tuple[int, int]
+    propagation: Literal["table", "fitted", "exact"]
 
 
 def prognosis_rng(seed: int, t_s: float) -> tuple[np.random.Generator, tuple[int, int]]:
@@ -671,6 +680,142 @@ def quantile_or_none(sorted_times: FloatArray, q: float) -> float | None:
     return float(sorted_times[lo] + (h - lo) * (sorted_times[hi] - sorted_times[lo]))
 
 
+
+
+#: largest relative difference between a fitted time and the propagated one, at every design
+#: point and check sample, for the response surface to be used ...
+FIT_TOL = 2e-3
+#: ... and at most this share of the standard deviation of ln(time) over the samples (the
+#: spread the surface has to resolve), or FIT_TOL_FLOOR if that is larger
+FIT_SPREAD_SHARE = 0.1
+FIT_TOL_FLOOR = 1e-5
+#: Monte Carlo samples propagated to check the response surface at evenly spaced ranks of
+#: their fitted times from the shortest to the longest, and at most as many again just after
+#: the load's switches; their propagated times are kept
+FIT_CHECKS = 16
+
+
+def quadratic_features(z: FloatArray) -> FloatArray:
+    """Columns ``1, z_k, z_k z_l (k <= l)`` of a full quadratic in the rows of ``z``."""
+    n, d = z.shape
+    cols = [np.ones(n), *(z[:, k] for k in range(d))]
+    cols += [z[:, k] * z[:, j] for k in range(d) for j in range(k, d)]
+    return np.column_stack(cols)
+
+
+def composite_design(dim: int, radius: float) -> FloatArray:
+    """Rotatable central composite design within the ball of ``radius``: the centre, the
+    ``2^dim`` corners ``(+-f, ..., +-f)`` and the ``2 dim`` axial points ``+-2^(dim/4) f`` (the
+    rotatable ratio: the fitted quadratic's variance depends only on the distance from the
+    centre), ``f`` scaling the farthest of them to ``radius``."""
+    axial = 2.0 ** (dim / 4.0)
+    f = radius / max(axial, math.sqrt(dim))
+    corners = np.array(list(itertools.product((-f, f), repeat=dim)))
+    axes = np.concatenate([np.eye(dim) * axial * f, -np.eye(dim) * axial * f])
+    return np.concatenate([np.zeros((1, dim)), corners, axes])
+
+
+def fitted_times(
+    plant: FloatArray,
+    seg_d: FloatArray,
+    seg_c: FloatArray,
+    x: FloatArray,
+    factor: FloatArray,
+    z: FloatArray,
+    samples: FloatArray,
+    ell_fail: float,
+    settings: PrognosisSettings,
+) -> FloatArray | None:
+    """Times to failure of ``samples = x + z factor^T`` from a response surface in ``z``, or
+    None where it does not hold (then every sample is propagated).
+
+    The samples are a cloud around the estimate and differ mainly in how fast they wear, so
+    their failure times differ by where in the load the last wear falls: across a zero-current
+    plateau the time jumps while the wear barely moves. The surface is therefore fitted to the
+    failure time read on the load's wear clock, ``C(T) = int_0^T dv^2`` in the periodic steady
+    state at alpha_f (:func:`estimators.kernels.dekf_kernels.wear_clock`), which is smooth in
+    the initial state, and a fitted value is turned back into a time by the clock's inverse
+    (``wear_clock_times``). ``ln C(T)`` is fitted by least squares, a full quadratic in z (15
+    coefficients for 4 states), to the period-by-period propagation
+    (:func:`estimators.kernels.dekf_kernels.rul_times`) of a rotatable central composite
+    design (25 points) of the cloud's radius in z. ``FIT_CHECKS`` samples at evenly spaced
+    ranks of their fitted times are then propagated, and the surface is used only if every
+    design point and check is within ``min(FIT_TOL, max(FIT_SPREAD_SHARE std(ln T),
+    FIT_TOL_FLOOR))`` of its propagated time (relative); the checks keep their propagated
+    times, and a fitted time beyond the horizon is propagated.
+
+    None when there are fewer than ``settings.fit_min_trajectories`` samples, a sample never
+    wears or has failed (m <= 0, alpha <= alpha_f, not finite: the cloud spans a singular
+    time), the load does not wear at alpha_f, a design point or check does not reach the
+    threshold within the horizon, or a check fails.
+    """
+    n, dim = z.shape
+    if n < settings.fit_min_trajectories:
+        return None
+    regular = (
+        np.all(np.isfinite(samples), axis=1)
+        & (samples[:, 2] > math.exp(ell_fail))
+        & (samples[:, 3] > 0.0)
+    )
+    radius = float(np.sqrt(np.einsum("ij,ij->i", z, z)).max())
+    if not (regular.all() and radius > 0.0):
+        return None
+    al_f = math.exp(ell_fail)
+    if not float(kern.wear_clock(plant, seg_d, seg_c, al_f, np.array([seg_d.sum()]))[0]) > 0.0:
+        return None  # no sliding at alpha_f: no clock
+
+    def propagate(points: FloatArray) -> FloatArray:
+        return np.asarray(
+            kern.rul_times(
+                plant, seg_d, seg_c, np.ascontiguousarray(points), ell_fail, settings.horizon_s,
+                settings.eps_seg, settings.eps_jump,
+            ),  # fmt: skip
+            dtype=np.float64,
+        )
+
+    def reached(t: FloatArray) -> bool:
+        return bool(np.all(np.isfinite(t)) and np.all(t > 0.0))
+
+    dz = composite_design(dim, radius)
+    design_t = propagate(x[None, :] + dz @ factor.T)
+    if not reached(design_t):
+        return None
+    clock = kern.wear_clock(plant, seg_d, seg_c, al_f, design_t)
+    coef = np.linalg.lstsq(quadratic_features(dz), np.log(clock), rcond=None)[0]
+
+    def surface(zs: FloatArray) -> FloatArray:
+        return np.asarray(
+            kern.wear_clock_times(plant, seg_d, seg_c, al_f, np.exp(quadratic_features(zs) @ coef)),
+            dtype=np.float64,
+        )
+
+    times = surface(z)
+    order = np.argsort(times)
+    ranks = np.round(np.linspace(0.0, n - 1.0, FIT_CHECKS)).astype(np.int64)
+    # and the first samples after each switch of the load inside the fitted times (where the
+    # wear rate changes and the clock's shape matters most), up to FIT_CHECKS of them
+    period = float(seg_d.sum())
+    starts = np.concatenate([[0.0], np.cumsum(seg_d)[:-1]])
+    k0 = math.floor(float(times[order[0]]) / period)
+    k1 = math.floor(float(times[order[-1]]) / period)
+    switches = (np.arange(k0, k1 + 1)[:, None] * period + starts[None, :]).ravel()
+    after = np.searchsorted(times[order], switches[(switches > times[order[0]])])
+    after = np.unique(after[after < n])
+    if after.shape[0] > FIT_CHECKS:
+        after = after[np.round(np.linspace(0.0, after.shape[0] - 1.0, FIT_CHECKS)).astype(np.int64)]
+    checks = order[np.unique(np.concatenate([ranks, after]))]
+    check_t = propagate(samples[checks])
+    if not reached(check_t):
+        return None
+    tol = min(FIT_TOL, max(FIT_SPREAD_SHARE * float(np.std(np.log(times))), FIT_TOL_FLOOR))
+    err = np.concatenate([surface(dz) / design_t, times[checks] / check_t]) - 1.0
+    if not float(np.max(np.abs(err))) <= tol:
+        return None
+    times[checks] = check_t
+    beyond = np.flatnonzero(~(times <= settings.horizon_s))
+    if beyond.shape[0] > 0:
+        times[beyond] = propagate(samples[beyond])
+    return times
 
 
 def prognose(
@@ -717,26 +862,27 @@ def prognose(
     """
     alpha_fail = alpha0 * (1.0 - settings.failure_dn)
     ell_fail = math.log(alpha_fail)
+    # one layout for the compiled kernels (a read-only plant would compile a second version)
+    plant = np.array(plant, dtype=np.float64)
     seg_d = np.ascontiguousarray(segments[0], dtype=np.float64)
     seg_c = np.ascontiguousarray(segments[1], dtype=np.float64)
     rng, entropy = prognosis_rng(settings.seed, t_s)
     z = rng.standard_normal((settings.n_trajectories, 4))
-    samples = np.ascontiguousarray(x[None, :] + z @ covariance_factor(cov).T)
-    propagate = (
-        kern.rul_times_tabulated
-        if seg_d.shape[0] >= settings.table_min_segments
-        else kern.rul_times
-    )
-    times = propagate(
-        plant,
-        seg_d,
-        seg_c,
-        samples,
-        ell_fail,
-        settings.horizon_s,
-        settings.eps_seg,
-        settings.eps_jump,
-    )
+    factor = covariance_factor(cov)
+    samples = np.ascontiguousarray(x[None, :] + z @ factor.T)
+    args = (ell_fail, settings.horizon_s, settings.eps_seg, settings.eps_jump)
+    propagation: Literal["table", "fitted", "exact"] = "exact"
+    fitted = None
+    if seg_d.shape[0] >= settings.table_min_segments:
+        times = kern.rul_times_tabulated(plant, seg_d, seg_c, samples, *args)
+        propagation = "table"
+    else:
+        fitted = fitted_times(plant, seg_d, seg_c, x, factor, z, samples, ell_fail, settings)
+    if fitted is not None:
+        times = fitted
+        propagation = "fitted"
+    elif propagation == "exact":
+        times = kern.rul_times(plant, seg_d, seg_c, samples, *args)
     if log_time_var > 0.0 or walk_rel_var_per_s > 0.0 or renewal_var_s > 0.0:
         z_rate = rng.standard_normal(settings.n_trajectories)
         finite = np.isfinite(times)
@@ -757,16 +903,7 @@ def prognose(
             [x[0], x[1], x[2] - c * s_alpha, x[3] + c * s_m],
         ]
     )
-    opt, pes = kern.rul_times(
-        plant,
-        seg_d,
-        seg_c,
-        bounds,
-        ell_fail,
-        settings.horizon_s,
-        settings.eps_seg,
-        settings.eps_jump,
-    )
+    opt, pes = kern.rul_times(plant, seg_d, seg_c, bounds, *args)
     opt = opt * time_scale
     pes = pes * time_scale
     reached = np.isfinite(times)
@@ -784,4 +921,5 @@ def prognose(
         reached_fraction=float(reached.mean()),
         alpha_failure=alpha_fail,
         entropy=entropy,
+        propagation=propagation,
     )

@@ -343,3 +343,117 @@ def test_tabulated_times_fall_back_for_short_lives_and_special_samples() -> None
     np.testing.assert_array_equal(np.isnan(table), np.isnan(exact))
     np.testing.assert_allclose(table, exact, rtol=1e-12, equal_nan=True)
     assert table[1] == 0.0 and np.isnan(table[0]) and np.isnan(table[2])
+
+
+def _cloud_estimate(alpha: float, m: float, rel_alpha: float, rel_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """An estimate and a covariance like the filter's (speeds near their steady state, alpha
+    and m negatively correlated)."""
+    x = np.array([139.7, 12.0, alpha, m])
+    sd = np.array([3e-5, 1e-6, rel_alpha * alpha, rel_m * m])
+    corr = np.eye(4)
+    corr[0, 1] = corr[1, 0] = 0.6
+    corr[2, 3] = corr[3, 2] = -0.5
+    corr[0, 2] = corr[2, 0] = 0.2
+    return x, corr * np.outer(sd, sd)
+
+
+def _telegraph_dwells(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    level = np.cumsum(rng.random(1500) < 0.04) % 2
+    dl = rul.dwell_load(np.full(1500, 0.02), np.where(level == 1, 20.0, 0.0), 16, 0.05)
+    assert dl is not None
+    return dl.durations_s, dl.currents_a
+
+
+def _fit_cases() -> list[tuple[str, tuple[np.ndarray, np.ndarray], float, float]]:
+    square = rul.load_segments(rul.SquareWaveLoad(), 3.3)
+    constant = rul.load_segments(rul.ConstantLoad(current_a=20.0), 0.0)
+    assert square is not None and constant is not None
+    return [
+        ("square wave, fast wear", square, 9.2, 0.013),
+        ("square wave, slow wear (cycle jumps)", square, 9.0, 0.001),
+        ("constant 20 A", constant, 9.5, 0.01),
+        ("telegraph read as dwells", _telegraph_dwells(17), 9.0, 0.01),
+        ("telegraph read as dwells, slow wear", _telegraph_dwells(23), 9.0, 0.002),
+    ]
+
+
+@pytest.mark.parametrize("case", range(5))
+def test_fitted_times_match_the_period_by_period_propagation(case: int) -> None:
+    """Loads of fewer segments than the table's: the Monte Carlo times come from the response
+    surface (and say so), each within FIT_TOL of the period-by-period propagation of the same
+    samples, the quantiles within 2e-4."""
+    _, segments, alpha, m = _fit_cases()[case]
+    x, cov = _cloud_estimate(alpha, m, 2e-3, 0.02)
+    settings = rul.PrognosisSettings(n_trajectories=400, failure_dn=0.9)
+    t_s = 41.0 + case
+    res = rul.prognose(PLANT, 10.0, x, cov, t_s, segments, settings)
+    assert res.propagation == "fitted"
+    rng, _ = rul.prognosis_rng(settings.seed, t_s)
+    z = rng.standard_normal((settings.n_trajectories, 4))
+    samples = np.ascontiguousarray(x[None, :] + z @ rul.covariance_factor(cov).T)
+    exact = kern.rul_times(
+        PLANT, np.ascontiguousarray(segments[0]), np.ascontiguousarray(segments[1]), samples,
+        math.log(10.0 * (1.0 - settings.failure_dn)), settings.horizon_s, settings.eps_seg,
+        settings.eps_jump,
+    )  # fmt: skip
+    assert np.all(np.isfinite(exact))
+    rel = res.times_s / exact - 1.0
+    assert float(np.max(np.abs(rel))) <= rul.FIT_TOL
+    for q in (0.05, 0.5, 0.95):
+        assert float(np.quantile(res.times_s, q)) == pytest.approx(
+            float(np.quantile(exact, q)), rel=2e-4
+        )
+    # a surface that ignored the samples' spread would not pass: the times do spread
+    assert float(np.std(np.log(exact))) > 10.0 * rul.FIT_TOL
+
+
+def test_fitted_times_fall_back_where_the_surface_does_not_hold() -> None:
+    """A cloud with samples that never wear (m spread wider than m), too few trajectories, or
+    lives beyond the horizon: every sample is propagated, with the propagation's times."""
+    square = rul.load_segments(rul.SquareWaveLoad(), 3.3)
+    assert square is not None
+    seg_d = np.ascontiguousarray(square[0])
+    seg_c = np.ascontiguousarray(square[1])
+    x, cov = _cloud_estimate(9.2, 0.013, 2e-3, 0.02)
+    fitted = rul.prognose(PLANT, 10.0, x, cov, 5.0, square, rul.PrognosisSettings(n_trajectories=400))
+    assert fitted.propagation == "fitted"
+    in_cloud = float(np.median(fitted.times_s))  # a horizon inside the cloud of times
+    for rel_m, n, horizon in ((2.0, 400, 1e7), (0.02, 150, 1e7), (0.02, 400, in_cloud)):
+        x, cov = _cloud_estimate(9.2, 0.013, 2e-3, rel_m)
+        settings = rul.PrognosisSettings(n_trajectories=n, horizon_s=horizon)
+        res = rul.prognose(PLANT, 10.0, x, cov, 5.0, square, settings)
+        assert res.propagation == "exact"
+        rng, _ = rul.prognosis_rng(settings.seed, 5.0)
+        z = rng.standard_normal((n, 4))
+        samples = np.ascontiguousarray(x[None, :] + z @ rul.covariance_factor(cov).T)
+        ell_fail = math.log(10.0 * (1.0 - settings.failure_dn))
+        exact = kern.rul_times(PLANT, seg_d, seg_c, samples, ell_fail, horizon, 0.01, 0.25)
+        np.testing.assert_array_equal(res.times_s, exact)
+
+
+def test_composite_design_is_rotatable_and_fits_a_quadratic_exactly() -> None:
+    """The 25 design points in 4 dimensions lie on three spheres (centre, radius r), and a
+    quadratic is recovered from them to rounding."""
+    dz = rul.composite_design(4, 3.0)
+    assert dz.shape == (25, 4)
+    radii = np.sqrt((dz * dz).sum(axis=1))
+    np.testing.assert_allclose(np.sort(radii)[1:], 3.0, rtol=1e-12)
+    coef = np.arange(1.0, 16.0) / 7.0
+    fit = np.linalg.lstsq(rul.quadratic_features(dz), rul.quadratic_features(dz) @ coef, rcond=None)
+    np.testing.assert_allclose(fit[0], coef, rtol=1e-10)
+
+
+def test_wear_clock_and_its_inverse() -> None:
+    """The steady-state wear clock grows by the period's wear each period and its inverse
+    gives back the times, inside and across segments."""
+    segments = _telegraph_dwells(29)
+    seg_d = np.ascontiguousarray(segments[0])
+    seg_c = np.ascontiguousarray(segments[1])
+    period = float(seg_d.sum())
+    t = np.array([0.0, 0.013, 0.4 * period, period, 3.7 * period + 0.01, 41.0 * period])
+    clock = kern.wear_clock(PLANT, seg_d, seg_c, 1.0, t)
+    assert clock[0] == 0.0 and np.all(np.diff(clock) > 0.0)
+    per = kern.wear_clock(PLANT, seg_d, seg_c, 1.0, np.array([period, 2.0 * period]))
+    assert per[1] == pytest.approx(2.0 * per[0], rel=1e-12)
+    np.testing.assert_allclose(kern.wear_clock_times(PLANT, seg_d, seg_c, 1.0, clock), t, rtol=1e-10, atol=1e-12)
