@@ -92,7 +92,7 @@ from estimators.kernels import dekf_kernels as kern
 from estimators.simulators.friction_drive import FrictionDriveParams
 
 NAME = "deterioration_ekf"
-STATE_VERSION = 4
+STATE_VERSION = 5
 CHANNELS = ("current", "motor_speed", "wheel_speed")
 STATE_NAMES = ("w1", "w2", "alpha", "m")
 SAMPLE_OUTPUTS = (
@@ -691,6 +691,9 @@ _FRESH_NAN = (
     *range(kern.ST_PLANT, kern.ST_PLANT + 5),
     kern.ST_PCAL_OK,
     kern.ST_NIS_RATIO,
+    kern.ST_DW_T,
+    kern.ST_DW_LEVEL,
+    kern.ST_DW_RUN,
 )
 
 
@@ -743,13 +746,21 @@ def _upgrade_v3(doc: dict[str, Any]) -> dict[str, Any]:
     residuals, NaN, and their running medians, not started) are inserted before the
     observed-load ring; until they have samples the third-difference estimate alone is used,
     as before."""
-    return _insert_fresh(doc, kern.ST_BASE_LEN_V3, kern.ST_BASE_LEN, 4)
+    return _insert_fresh(doc, kern.ST_BASE_LEN_V3, kern.ST_BASE_LEN_V4, 4)
+
+
+def _upgrade_v4(doc: dict[str, Any]) -> dict[str, Any]:
+    """Version 4 -> 5: the dwell record of an observed load (nothing counted yet) is inserted
+    before the observed-load ring; the next prognosis counts the ring's bins into it, its first
+    run censored, as after a gap."""
+    return _insert_fresh(doc, kern.ST_BASE_LEN_V4, kern.ST_BASE_LEN, 5)
 
 
 _UPGRADES: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {
     1: _upgrade_v1,
     2: _upgrade_v2,
     3: _upgrade_v3,
+    4: _upgrade_v4,
 }
 
 
@@ -1026,6 +1037,62 @@ def _observed_profile(row: FloatArray, bins: int) -> tuple[FloatArray, FloatArra
     return durations.copy(), currents.copy()
 
 
+def dwell_record_of(vec: FloatArray) -> rulmod.DwellRecord:
+    """The dwell record of an observed load kept in the state (``ST_DW_*``)."""
+
+    def pair(i: int) -> tuple[float, float]:
+        return float(vec[i]), float(vec[i + 1])
+
+    return rulmod.DwellRecord(
+        t_s=float(vec[kern.ST_DW_T]),
+        level=float(vec[kern.ST_DW_LEVEL]),
+        run_s=float(vec[kern.ST_DW_RUN]),
+        exposure_s=pair(kern.ST_DW_EXPO),
+        switches=pair(kern.ST_DW_SWITCH),
+        n=pair(kern.ST_DW_N),
+        sum_s=pair(kern.ST_DW_SUM),
+        sum2_s2=pair(kern.ST_DW_SUM2),
+        restarts=float(vec[kern.ST_DW_RESTARTS]),
+        hist=(
+            tuple(float(v) for v in vec[kern.ST_DW_HIST : kern.ST_DW_HIST + kern.DW_HIST_BINS]),
+            tuple(float(v) for v in vec[kern.ST_DW_HIST + kern.DW_HIST_BINS : kern.ST_RING]),
+        ),
+    )
+
+
+def _store_dwell_record(vec: FloatArray, record: rulmod.DwellRecord) -> None:
+    vec[kern.ST_DW_T] = record.t_s
+    vec[kern.ST_DW_LEVEL] = record.level
+    vec[kern.ST_DW_RUN] = record.run_s
+    for i, v in (
+        (kern.ST_DW_EXPO, record.exposure_s),
+        (kern.ST_DW_SWITCH, record.switches),
+        (kern.ST_DW_N, record.n),
+        (kern.ST_DW_SUM, record.sum_s),
+        (kern.ST_DW_SUM2, record.sum2_s2),
+    ):
+        vec[i : i + 2] = v
+    vec[kern.ST_DW_RESTARTS] = record.restarts
+    vec[kern.ST_DW_HIST : kern.ST_RING] = np.concatenate([record.hist[0], record.hist[1]])
+
+
+def _observed_dwells(
+    load: rulmod.ObservedLoad, row: FloatArray, vec: FloatArray, observed: tuple[FloatArray, FloatArray]
+) -> rulmod.DwellLoad | None:
+    """The dwell load of a snapshot row (a full ring); with ``dwell_record`` the ring's new bins
+    are first counted into the stream's dwell record in ``vec`` (in time order, so the record
+    does not depend on the batch split)."""
+    record = None
+    if load.dwell_record:
+        t_end = float(row[kern.RS_T]) - float(row[kern.RS_OB_PARTIAL])
+        record = rulmod.update_dwell_record(
+            dwell_record_of(vec), observed[0], observed[1], t_end, load.merge_tolerance_a,
+            load.dwell_memory_s,
+        )  # fmt: skip
+        _store_dwell_record(vec, record)
+    return rulmod.dwell_load(observed[0], observed[1], load.dwell_pairs, load.merge_tolerance_a, record)
+
+
 def _predicted_rate(
     config: DekfConfig,
     plant: FloatArray,
@@ -1145,13 +1212,22 @@ def prognosis_at(config: DekfConfig, row: FloatArray, vec: FloatArray) -> RulEst
         ):  # fmt: skip
             vec[i] = 0.0
     observed = _observed_profile(row, config.observed_bins)
-    segments = rulmod.load_segments(config.rul_load, t_s, observed)
+    load = config.rul_load
+    dwells: rulmod.DwellLoad | None = None
+    if (
+        isinstance(load, rulmod.ObservedLoad)
+        and load.model == "dwells"
+        and observed is not None
+        and observed[0].shape[0] >= load.bins
+    ):
+        dwells = _observed_dwells(load, row, vec, observed)
+    segments = (
+        (dwells.durations_s, dwells.currents_a)
+        if dwells is not None
+        else rulmod.load_segments(load, t_s, observed)
+    )
     if segments is None or not math.isfinite(alpha0):
         return None
-    dwells: rulmod.DwellLoad | None = None
-    load = config.rul_load
-    if isinstance(load, rulmod.ObservedLoad) and load.model == "dwells" and observed is not None:
-        dwells = rulmod.dwell_load(observed[0], observed[1], load.dwell_pairs, load.merge_tolerance_a)
     c = config.bound_sigma
     cov_scale = float(row[kern.RS_COV_SCALE]) if config.covariance_scaling else 1.0
     # the calibrated alpha's own uncertainty is a floor no later data reduce (a plant error)
@@ -1242,6 +1318,8 @@ def prognosis_at(config: DekfConfig, row: FloatArray, vec: FloatArray) -> RulEst
                 "cycle_mean_s": dwells.cycle_mean_s,
                 "cycle_std_s": math.sqrt(dwells.cycle_var_s2),
                 "estimate_rel_std": math.sqrt(dwells.estimate_rel_var),
+                "source": dwells.source,
+                "record_restarts": int(vec[kern.ST_DW_RESTARTS]),
             }
             if dwells is not None
             else "too few completed dwells at two levels: the ring is repeated"
@@ -1297,6 +1375,7 @@ def _end_snapshot(vec: FloatArray, t_s: float, bins: int) -> FloatArray:
     row[kern.RS_A0_VAR] = vec[kern.ST_A0_VAR]
     ok = float(vec[kern.ST_NIS_RATIO])
     row[kern.RS_COV_SCALE] = max(ok, 1.0) if math.isfinite(ok) else 1.0
+    row[kern.RS_OB_PARTIAL] = vec[kern.ST_OB_SUM_DT]
     if bins:
         order = (int(vec[kern.ST_OB_HEAD]) + np.arange(bins)) % bins
         row[kern.RS_RING : kern.RS_RING + bins] = vec[kern.ST_RING + order]

@@ -21,7 +21,7 @@ from __future__ import annotations
 import itertools
 import math
 import struct
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Annotated, Any, Literal
 
 import numpy as np
@@ -109,7 +109,10 @@ class ObservedLoad(EstimatorConfigModel):
       the levels and the empirical distribution of the completed dwells at each level are read
       from the ring; the future period holds ``dwell_pairs`` dwells per level at the quantiles
       of that distribution, and the prognosis' interval carries the randomness of the future
-      dwells and the sampling error of the observed ones."""
+      dwells and the sampling error of the observed ones. With ``dwell_record`` the mean dwells
+      and their variances come from the stream's record of every dwell seen since its start
+      (:class:`DwellRecord`, forgetting over ``dwell_memory_s``), the ring giving the shape of
+      the distribution."""
 
     kind: Literal["observed"] = Field(default="observed", description="load law")
     bin_samples: StrictInt = Field(default=20, ge=1, le=10_000_000, description="stream samples per bin")
@@ -124,6 +127,15 @@ class ObservedLoad(EstimatorConfigModel):
     )
     dwell_pairs: StrictInt = Field(
         default=16, ge=2, le=256, description="dwells per level in the future period ('dwells')"
+    )
+    dwell_record: bool = Field(
+        default=True,
+        description="'dwells': the mean dwells and their variances from the stream's record of "
+        "all dwells seen (with forgetting over dwell_memory_s and a stationarity check against "
+        "the ring), not the ring's alone",
+    )
+    dwell_memory_s: FiniteFloat = Field(
+        default=3600.0, gt=0.0, description="time constant of the dwell record's forgetting, s"
     )
 
 
@@ -197,6 +209,15 @@ def _rotate(
 DWELL_EDGE_SHARE = 0.05
 #: fewest completed dwells at each level for the dwell model
 MIN_DWELLS = 3
+#: z of the stationarity check of the dwell record against the ring (repeated at every
+#: prognosis on overlapping rings: 4 keeps false restarts rare)
+DWELL_STATIONARITY_Z = 4.0
+#: histogram of the whole dwells' lengths in the record: ``DWELL_HIST_BINS`` bins growing by
+#: ``DWELL_HIST_FACTOR`` from ``DWELL_HIST_MIN_S`` (1 ms to about 17 min; longer dwells count
+#: in the last bin, shorter in the first)
+DWELL_HIST_BINS = kern.DW_HIST_BINS
+DWELL_HIST_MIN_S = 1e-3
+DWELL_HIST_FACTOR = math.sqrt(2.0)
 
 
 @dataclass(frozen=True)
@@ -207,13 +228,16 @@ class DwellLoad:
         durations_s, currents_a: one period of the future load from now (the level in force
             first), ``pairs`` dwells per level at the quantiles of the observed dwells.
         low_a, high_a: the levels.
-        dwells: completed dwells observed at the low and the high level.
+        dwells: completed dwells observed at the low and the high level (in the ring, or the
+            switches out of each level in the record when ``source`` is "record").
         cycle_mean_s, cycle_var_s2: mean and variance of a cycle (a low plus a high dwell).
         estimate_rel_var: relative variance of the mean cycle estimated from the observed
             dwells, ``cycle_var / (n cycle_mean^2)``, n the fewer of the two counts.
         renewal_var_s: the relative variance of the number of cycles in a future span T is
             ``renewal_var_s / T`` (renewal theory: ``T var / mean^3`` cycles^2 over
             ``(T / mean)^2``), i.e. ``cycle_var / cycle_mean``.
+        source: "ring" (the dwells of the ring alone) or "record" (the stream's dwell record,
+            :class:`DwellRecord`, for the mean dwells, their variances and counts).
     """
 
     durations_s: FloatArray
@@ -225,22 +249,18 @@ class DwellLoad:
     cycle_var_s2: float
     estimate_rel_var: float
     renewal_var_s: float
+    source: str = "ring"
 
 
-def dwell_load(
-    durations: FloatArray, currents: FloatArray, pairs: int, tolerance_a: float
-) -> DwellLoad | None:
-    """Two-level switching load from binned current (oldest bin first).
+def bin_levels(
+    durations: FloatArray, currents: FloatArray, tolerance_a: float
+) -> tuple[float, float, FloatArray] | None:
+    """The two levels of binned current and each bin's share of time at the high level.
 
     The levels are the duration-weighted means of the bins within ``DWELL_EDGE_SHARE`` of the
-    5 % and 95 % quantiles of the bin currents; a bin between them holds an edge and the share
-    ``(I - low) / (high - low)`` of its time at the high level (exact for one edge in the bin).
-    Walking the bins, the time at the level in force comes first, then the rest starts the
-    next dwell. The first and last dwells are censored by the ring and dropped. None when the
-    two levels are within ``tolerance_a`` or fewer than ``MIN_DWELLS`` dwells completed at
-    either level. The future period alternates, from the level in force now, ``pairs`` dwells
-    per level at the empirical quantiles ``(i + 0.5) / pairs``, the low dwells in a fixed
-    low-discrepancy order (so that long and short dwells are not paired by rank)."""
+    level difference of the 5 % and 95 % quantiles of the bin currents; a bin between them
+    holds an edge and the share ``(I - low) / (high - low)`` of its time at the high level
+    (exact for one edge in the bin). None when the levels are within ``tolerance_a``."""
     if durations.shape[0] < 4:
         return None
     lo_q, hi_q = np.quantile(currents, [0.05, 0.95])
@@ -255,25 +275,260 @@ def dwell_load(
         return None
     low = float(np.dot(durations[at_lo], currents[at_lo]) / durations[at_lo].sum())
     high = float(np.dot(durations[at_hi], currents[at_hi]) / durations[at_hi].sum())
-    runs: list[tuple[bool, float]] = []
-    state = bool(share[0] >= 0.5)
-    run = 0.0
+    return low, high, share
+
+
+@dataclass(frozen=True)
+class DwellRecord:
+    """The stream's record of a two-level load's dwells over its whole history (with a slow
+    exponential forgetting), which the 30 s or so of the ring cannot give: the mean dwell at
+    each level is the ratio estimator ``time at the level / switches out of it`` (exact under
+    censoring for exponential dwells and consistent for any renewal process), the variance of
+    a dwell from the dwells seen whole.
+
+    Attributes:
+        t_s: end of the newest bin counted (NaN: nothing counted yet).
+        level: level in force there (0 low, 1 high; NaN: none).
+        run_s: time at that level since its last switch (NaN: the run began unseen).
+        exposure_s, switches, n, sum_s, sum2_s2: per level (low, high): time at the level,
+            switches out of it, completed dwells seen whole, their summed lengths and squares.
+        restarts: times the stationarity check restarted the record from the ring.
+        hist: per level, the counts of the whole dwells in the log-spaced bins
+            (``DWELL_HIST_*``): the shape of the dwell distribution.
+    """
+
+    t_s: float = math.nan
+    level: float = math.nan
+    run_s: float = math.nan
+    exposure_s: tuple[float, float] = (0.0, 0.0)
+    switches: tuple[float, float] = (0.0, 0.0)
+    n: tuple[float, float] = (0.0, 0.0)
+    sum_s: tuple[float, float] = (0.0, 0.0)
+    sum2_s2: tuple[float, float] = (0.0, 0.0)
+    restarts: float = 0.0
+    hist: tuple[tuple[float, ...], tuple[float, ...]] = (
+        (0.0,) * DWELL_HIST_BINS,
+        (0.0,) * DWELL_HIST_BINS,
+    )
+
+    def dwell_quantiles(self, lvl: int, q: FloatArray) -> FloatArray:
+        """Quantiles of the whole dwells at a level from the histogram (log-linear within a
+        bin)."""
+        counts = np.asarray(self.hist[lvl], dtype=np.float64)
+        cum = np.concatenate([[0.0], np.cumsum(counts)])
+        edges = np.log(DWELL_HIST_MIN_S) + np.arange(DWELL_HIST_BINS + 1) * math.log(DWELL_HIST_FACTOR)
+        # each occupied bin spreads its count evenly in log length over the bin
+        full = np.flatnonzero(counts > 0.0)
+        xp = np.column_stack([cum[full], cum[full + 1]]).ravel()
+        fp = np.column_stack([edges[full], edges[full + 1]]).ravel()
+        return np.asarray(np.exp(np.interp(q * cum[-1], xp, fp)), dtype=np.float64)
+
+    def mean_dwell(self, lvl: int) -> float:
+        """Mean dwell at a level (NaN before a switch out of it)."""
+        sw = self.switches[lvl]
+        return self.exposure_s[lvl] / sw if sw > 0.0 else math.nan
+
+    def dwell_var(self, lvl: int) -> float:
+        """Variance of a dwell at a level, from the dwells seen whole (NaN before two)."""
+        n = self.n[lvl]
+        if n < 2.0:
+            return math.nan
+        return max(0.0, (self.sum2_s2[lvl] - self.sum_s[lvl] ** 2 / n) / (n - 1.0))
+
+
+def _walk_runs(
+    durations: FloatArray, share: FloatArray, level: int, run: float
+) -> tuple[list[tuple[int, float]], FloatArray, int, float]:
+    """Walk bins from ``level`` with ``run`` already spent there: the completed runs (level,
+    length; NaN where the run began unseen), the time at each level, the level in force at
+    the end and the time spent there."""
+    runs: list[tuple[int, float]] = []
+    expo = np.zeros(2)
     for d, f in zip(durations, share, strict=True):
-        here = d * (f if state else 1.0 - f)
+        here = d * (f if level else 1.0 - f)
         other = d - here
+        expo[level] += here
+        expo[1 - level] += other
         run += here
         if other > DWELL_EDGE_SHARE * d:
-            runs.append((state, run))
-            state = not state
+            runs.append((level, run))
+            level = 1 - level
             run = other
+    return runs, expo, level, run
+
+
+def record_dwells(
+    record: DwellRecord,
+    durations: FloatArray,
+    share: FloatArray,
+    t_end_s: float,
+    memory_s: float,
+) -> DwellRecord:
+    """Count into the record the bins of the ring (oldest first, the newest ending at
+    ``t_end_s``; ``share`` the time share at the high level, :func:`bin_levels`) that end after
+    the record's ``t_s``. If the ring reaches back to ``t_s`` the run under way continues;
+    otherwise (a gap longer than the ring) the first run is censored. The sums are weighted
+    by ``exp(-elapsed / memory_s)`` first."""
+    ends = t_end_s - (np.cumsum(durations[::-1])[::-1] - durations)
+    tol = 0.5 * float(durations.min())
+    t0 = record.t_s
+    new = ends > t0 + tol if math.isfinite(t0) else np.ones(ends.shape[0], dtype=bool)
+    if not new.any():
+        return record
+    k = int(np.argmax(new))
+    start = ends[k] - durations[k]
+    if math.isfinite(t0) and math.isfinite(record.level) and abs(start - t0) <= tol:
+        level, run = int(record.level), record.run_s
+    else:
+        level, run = int(share[k] >= 0.5), math.nan
+    runs, expo, level, run = _walk_runs(durations[k:], share[k:], level, run)
+    w = math.exp(-(t_end_s - t0) / memory_s) if math.isfinite(t0) else 1.0
+    sw = np.array(record.switches) * w
+    n = np.array(record.n) * w
+    s1 = np.array(record.sum_s) * w
+    s2 = np.array(record.sum2_s2) * w
+    for lvl, length in runs:
+        sw[lvl] += 1.0
+        if math.isfinite(length):
+            n[lvl] += 1.0
+            s1[lvl] += length
+            s2[lvl] += length * length
+    hist = np.array(record.hist) * w
+    for lvl, length in runs:
+        if math.isfinite(length):
+            hist[lvl, _hist_bin(length)] += 1.0
+    ex = np.array(record.exposure_s) * w + expo
+    return DwellRecord(
+        t_s=float(ends[-1]),
+        level=float(level),
+        run_s=float(run),
+        exposure_s=(float(ex[0]), float(ex[1])),
+        switches=(float(sw[0]), float(sw[1])),
+        n=(float(n[0]), float(n[1])),
+        sum_s=(float(s1[0]), float(s1[1])),
+        sum2_s2=(float(s2[0]), float(s2[1])),
+        restarts=record.restarts,
+        hist=(tuple(float(v) for v in hist[0]), tuple(float(v) for v in hist[1])),
+    )
+
+
+def _hist_bin(length_s: float) -> int:
+    k = math.floor(math.log(max(length_s, DWELL_HIST_MIN_S) / DWELL_HIST_MIN_S) / math.log(DWELL_HIST_FACTOR))
+    return min(max(k, 0), DWELL_HIST_BINS - 1)
+
+
+def _cycle_stats(record: DwellRecord) -> tuple[float, float, float] | None:
+    """Mean and variance of a cycle and the fewer switches of the two levels, from a record
+    with at least ``MIN_DWELLS`` switches and two whole dwells at each level."""
+    if min(record.switches) < MIN_DWELLS:
+        return None
+    means = [record.mean_dwell(0), record.mean_dwell(1)]
+    var = [record.dwell_var(0), record.dwell_var(1)]
+    if not all(math.isfinite(v) for v in (*means, *var)):
+        return None
+    return means[0] + means[1], var[0] + var[1], min(record.switches)
+
+
+def check_stationary(
+    record: DwellRecord, ring: DwellRecord
+) -> bool:
+    """Whether the ring's mean cycle agrees with the record's (the record then describes the
+    load in force): ``|ln(mu_ring / mu_record)|`` within ``DWELL_STATIONARITY_Z`` standard
+    deviations of the ring's estimate, ``cycle_var / (n_ring mu^2)``, times ``1 - f`` (the
+    ring is a share f of the record, so their difference varies less). True when either
+    lacks the dwells to say."""
+    rec = _cycle_stats(record)
+    if rec is None or min(ring.switches) < MIN_DWELLS:
+        return True
+    mu_ring = ring.mean_dwell(0) + ring.mean_dwell(1)
+    mu, var, _ = rec
+    f = min(sum(ring.exposure_s) / max(sum(record.exposure_s), 1e-300), 1.0)
+    rel_var = var / (min(ring.switches) * mu * mu) * (1.0 - f)
+    if not rel_var > 0.0:
+        return True
+    return abs(math.log(mu_ring / mu)) <= DWELL_STATIONARITY_Z * math.sqrt(rel_var)
+
+
+def update_dwell_record(
+    record: DwellRecord,
+    durations: FloatArray,
+    currents: FloatArray,
+    t_end_s: float,
+    tolerance_a: float,
+    memory_s: float,
+) -> DwellRecord:
+    """The record after the ring ending at ``t_end_s`` (oldest bin first): its new bins counted
+    (:func:`record_dwells`); restarted from the ring alone when the ring's mean cycle departs
+    from the record's (:func:`check_stationary`: the load changed). Unchanged when the ring
+    shows no two levels."""
+    levels = bin_levels(durations, currents, tolerance_a)
+    if levels is None:
+        return record
+    share = levels[2]
+    updated = record_dwells(record, durations, share, t_end_s, memory_s)
+    ring = record_dwells(DwellRecord(), durations, share, t_end_s, memory_s)
+    if check_stationary(updated, ring):
+        return updated
+    return replace(ring, restarts=record.restarts + 1.0)
+
+
+def dwell_load(
+    durations: FloatArray,
+    currents: FloatArray,
+    pairs: int,
+    tolerance_a: float,
+    record: DwellRecord | None = None,
+) -> DwellLoad | None:
+    """Two-level switching load from binned current (oldest bin first), and the stream's
+    dwell record if given.
+
+    The levels and each bin's share at the high level are :func:`bin_levels`. Walking the
+    bins, the time at the level in force comes first, then the rest starts the next dwell.
+    The first and last dwells are censored by the ring and dropped. None when the two levels
+    are within ``tolerance_a`` or fewer than ``MIN_DWELLS`` dwells completed at either level.
+    The future period alternates, from the level in force now, ``pairs`` dwells per level at
+    the empirical quantiles ``(i + 0.5) / pairs``, the low dwells in a fixed low-discrepancy
+    order (so that long and short dwells are not paired by rank).
+
+    With a ``record`` holding at least ``MIN_DWELLS`` switches and two whole dwells at each
+    level, the record gives the mean dwells, the cycle's variance and the count behind the
+    sampling error; the shape of each level's distribution is the record's histogram where it
+    holds more whole dwells than the ring, else the ring's, and its quantiles are scaled to the
+    record's mean dwell (which also undoes the ring's bias toward short dwells: a long dwell is
+    less often seen whole). The shape matters: at equal mean, regular dwells wear the contact
+    about 1.5 times as fast as exponential ones, and the quantiles of the ring's 5-50 dwells
+    miss the long tail."""
+    levels = bin_levels(durations, currents, tolerance_a)
+    if levels is None:
+        return None
+    low, high, share = levels
+    runs, _, level, _ = _walk_runs(durations, share, int(share[0] >= 0.5), math.nan)
     runs = runs[1:]  # the first dwell began before the ring; the one under way is not done
+    state = bool(level)
     hi_d = np.array([r for s, r in runs if s])
     lo_d = np.array([r for s, r in runs if not s])
     if hi_d.shape[0] < MIN_DWELLS or lo_d.shape[0] < MIN_DWELLS:
         return None
+    mean = float(hi_d.mean() + lo_d.mean())
+    var = float(hi_d.var(ddof=1) + lo_d.var(ddof=1))
+    n = float(min(hi_d.shape[0], lo_d.shape[0]))
+    counts = (int(lo_d.shape[0]), int(hi_d.shape[0]))
+    source = "ring"
     q = (np.arange(pairs) + 0.5) / pairs
     hq = np.quantile(hi_d, q)
-    lq = np.quantile(lo_d, q)[np.argsort(np.mod(np.arange(pairs) * 0.6180339887498949, 1.0))]
+    lq = np.quantile(lo_d, q)
+    stats = _cycle_stats(record) if record is not None else None
+    if record is not None and stats is not None:
+        shaped = []
+        for lvl, ring_q, ring_n in ((0, lq, lo_d.shape[0]), (1, hq, hi_d.shape[0])):
+            if sum(record.hist[lvl]) > ring_n:
+                ring_q = record.dwell_quantiles(lvl, q)
+            shaped.append(ring_q * (record.mean_dwell(lvl) / ring_q.mean()))
+        lq, hq = shaped
+        mean, var, n = stats
+        counts = (round(record.switches[0]), round(record.switches[1]))
+        source = "record"
+    lq = lq[np.argsort(np.mod(np.arange(pairs) * 0.6180339887498949, 1.0))]
     first, second = (hq, lq) if state else (lq, hq)
     d_out = np.empty(2 * pairs)
     c_out = np.empty(2 * pairs)
@@ -281,19 +536,17 @@ def dwell_load(
     d_out[1::2] = second
     c_out[0::2] = high if state else low
     c_out[1::2] = low if state else high
-    mean = float(hi_d.mean() + lo_d.mean())
-    var = float(hi_d.var(ddof=1) + lo_d.var(ddof=1))
-    n = min(hi_d.shape[0], lo_d.shape[0])
     return DwellLoad(
         durations_s=d_out,
         currents_a=c_out,
         low_a=low,
         high_a=high,
-        dwells=(int(lo_d.shape[0]), int(hi_d.shape[0])),
+        dwells=counts,
         cycle_mean_s=mean,
         cycle_var_s2=var,
         estimate_rel_var=var / (n * mean * mean),
         renewal_var_s=var / mean,
+        source=source,
     )
 
 

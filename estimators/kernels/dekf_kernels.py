@@ -176,8 +176,20 @@ ST_PCAL_ALPHA_REL = 250  # relative std of the calibrated alpha: a floor of the 
 ST_Y_RES = 251  # 2: posterior residuals y - x of w1, w2 at the last sample (NaN: missing)
 ST_QTL_RES = 253  # 2: running median of |one-step residual| of w1, w2
 ST_N_QTL_RES = 255  # 2: its sample counts
-ST_RING = 257  # bins currents, then bins durations
-ST_BASE_LEN = 257
+ST_DW_T = 257  # dwell record of an observed load: end of the newest bin counted (NaN: none)
+ST_DW_LEVEL = 258  # level in force there (0 low, 1 high; NaN: none)
+ST_DW_RUN = 259  # time at that level since its last switch (NaN: the run began unseen)
+ST_DW_EXPO = 260  # 2: time at the low, the high level (forgetting-weighted)
+ST_DW_SWITCH = 262  # 2: switches out of the low, the high level
+ST_DW_N = 264  # 2: completed dwells seen whole at the low, the high level
+ST_DW_SUM = 266  # 2: their summed lengths
+ST_DW_SUM2 = 268  # 2: their summed squared lengths
+ST_DW_RESTARTS = 270  # restarts of the record by the stationarity check
+ST_DW_HIST = 271  # 2 x DW_HIST_BINS: histogram of the whole dwells' lengths, low then high
+DW_HIST_BINS = 40
+ST_RING = 351  # bins currents, then bins durations
+ST_BASE_LEN = 351
+ST_BASE_LEN_V4 = 257
 ST_BASE_LEN_V3 = 251
 ST_BASE_LEN_V1 = 49
 ST_BASE_LEN_V2 = 87
@@ -221,8 +233,9 @@ RS_FILLED = 15
 RS_ALPHA0 = 16
 RS_A0_VAR = 17
 RS_COV_SCALE = 18  # covariance scale max(1, running NIS / dof) at the snapshot
-RS_RING = 19
-RS_BASE_LEN = 19
+RS_OB_PARTIAL = 19  # duration of the observed-load bin under way (the newest full bin ends t - this)
+RS_RING = 20
+RS_BASE_LEN = 20
 
 # per-sample output rows
 OUT_W1 = 0
@@ -1391,6 +1404,7 @@ def _ekf_kernel(
             row[RS_ALPHA0] = alpha0
             row[RS_A0_VAR] = a0_var
             row[RS_COV_SCALE] = cs * cs
+            row[RS_OB_PARTIAL] = ob_dt
             for b in range(bins):
                 # oldest bin first
                 src = (ob_head + b) % bins

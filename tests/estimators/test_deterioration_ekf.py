@@ -582,7 +582,7 @@ def test_state_errors() -> None:
     config = seed_config({})
     blob = de.dump_state(de.initial_state(config))
     with pytest.raises(StateVersionError, match="99"):
-        de.load_state(blob.replace(b"\"version\":4", b"\"version\":99"))
+        de.load_state(blob.replace(f'"version":{de.STATE_VERSION}'.encode(), b'"version":99'))
     with pytest.raises(EstimatorError):
         de.load_state(b"not json")
     with pytest.raises(EstimatorError, match="kind"):
