@@ -111,8 +111,8 @@ class ObservedLoad(EstimatorConfigModel):
       of that distribution, and the prognosis' interval carries the randomness of the future
       dwells and the sampling error of the observed ones. With ``dwell_record`` the mean dwells
       and their variances come from the stream's record of every dwell seen since its start
-      (:class:`DwellRecord`, forgetting over ``dwell_memory_s``), the ring giving the shape of
-      the distribution."""
+      (:class:`DwellRecord`, forgetting over ``dwell_memory_s``), and so does the shape of the
+      distribution where the record holds more whole dwells than the ring."""
 
     kind: Literal["observed"] = Field(default="observed", description="load law")
     bin_samples: StrictInt = Field(default=20, ge=1, le=10_000_000, description="stream samples per bin")
