@@ -8,9 +8,13 @@ import orjson
 import pyarrow as pa
 import pytest
 from fastapi.testclient import TestClient
+from sqlalchemy import select
 
 from app.config import Settings
+from app.db import Database
 from app.main import create_app
+from app.models import Actuator
+from tests.conftest import make_series
 
 ADMIN_KEY = "test-admin-key-abcdefghijklmnop"
 FAKF_SMALL = {"identification_samples": 200, "health_window_samples": 250}
@@ -79,6 +83,17 @@ class Api:
             headers={"content-type": "application/vnd.apache.arrow.stream"},
         )
 
+    def log_series(self, tail: str, act: str, n_batches: int, batch: int, seed: int) -> None:
+        """Register ``act`` and log ``n_batches`` Arrow batches of ``batch`` samples of one
+        series, without waiting for their application."""
+        self.setup_actuator(tail, act)
+        s = make_series(n_batches * batch, seed=seed)
+        for k in range(n_batches):
+            sl = slice(k * batch, (k + 1) * batch)
+            chans = {"current": s.current[sl], "voltage": s.voltage[sl]}
+            r = self.send_arrow(tail, act, f"b{k}", s.t_s[sl], chans, wait=0)
+            assert r.status_code == 202, r.text
+
     def history(self, tail: str = "N1", act: str = "ema1") -> list[dict[str, Any]]:
         r = self.get(f"/v1/aircraft/{tail}/actuators/{act}/health/history?order=asc")
         assert r.status_code == 200, r.text
@@ -93,6 +108,12 @@ class Api:
         r = self.get(f"/v1/aircraft/{tail}/actuators/{act}/health")
         assert r.status_code == 200, r.text
         return r.json()  # type: ignore[no-any-return]
+
+
+def actuator_pk(db: Database, act: str = "ema1") -> int:
+    """The primary key of actuator ``act`` (the stream key of the log and the processor)."""
+    with db.read() as s:
+        return int(s.scalar(select(Actuator.id).where(Actuator.actuator_id == act)))  # type: ignore[arg-type]
 
 
 def arrow_bytes(cols: dict[str, np.ndarray]) -> bytes:

@@ -10,28 +10,13 @@ import pytest
 from sqlalchemy import select
 
 from app.db import Database
-from app.models import Actuator, HealthWindowRow, SampleOutputRow, Stream
+from app.models import HealthWindowRow, SampleOutputRow, Stream
 from app.processing import service
 from app.processing.processor import Processor
 from estimators.registry import ESTIMATORS
-from tests.app.conftest import Api, make_settings
-from tests.conftest import make_series
+from tests.app.conftest import Api, actuator_pk, make_settings
 
 BATCH = 250
-
-
-def _log(api: Api, act: str, n: int) -> None:
-    api.setup_actuator("N1", act)
-    s = make_series(n * BATCH, seed=5)
-    for k in range(n):
-        sl = slice(k * BATCH, (k + 1) * BATCH)
-        r = api.send_arrow("N1", act, f"b{k}", s.t_s[sl], {"current": s.current[sl], "voltage": s.voltage[sl]}, wait=0)
-        assert r.status_code == 202, r.text
-
-
-def _pk(db: Database, act: str) -> int:
-    with db.read() as s:
-        return int(s.scalar(select(Actuator.id).where(Actuator.actuator_id == act)))  # type: ignore[arg-type]
 
 
 def _applied(db: Database, pk: int) -> tuple[int, list[int], list[int]]:
@@ -48,9 +33,9 @@ def _applied(db: Database, pk: int) -> tuple[int, list[int], list[int]]:
 def test_rows_changed_since_the_computation_are_applied_again_not_twice(api_noproc: Api, db_url: str) -> None:
     """Another worker applies the stream between this one's computation and its store: the
     store sees rows other than those it computed from and applies the next batch instead."""
-    _log(api_noproc, "raced", 2)
+    api_noproc.log_series("N1", "raced", 2, BATCH, seed=5)
     db = Database(db_url)
-    pk = _pk(db, "raced")
+    pk = actuator_pk(db, "raced")
     processor = Processor(db, make_settings(db_url, processor_max_batches_per_txn=1))
     limits = {"max_batches": 1, "store_outputs": True, "is_sqlite": db.is_sqlite}
     with db.read() as rs:
@@ -74,9 +59,9 @@ def test_rows_changed_since_the_computation_are_applied_again_not_twice(api_nopr
 def test_unchanged_rows_are_stored_as_computed(api_noproc: Api, db_url: str) -> None:
     """Nothing happened between computation and store: the prepared apply is what is stored,
     the same as one transaction doing both."""
-    _log(api_noproc, "calm", 2)
+    api_noproc.log_series("N1", "calm", 2, BATCH, seed=5)
     db = Database(db_url)
-    pk = _pk(db, "calm")
+    pk = actuator_pk(db, "calm")
     limits = {"max_batches": 1, "store_outputs": True, "is_sqlite": db.is_sqlite}
     with db.read() as rs:
         prepared = service.prepare_apply(rs, pk, max_samples=10**6, **limits)
@@ -100,8 +85,8 @@ def test_estimators_run_while_another_writer_holds_the_lock(
     if not db.is_sqlite:
         db.dispose()
         pytest.skip("PostgreSQL applies under the streams' row locks; its writers do not share one lock")
-    _log(api_noproc, "busy", 1)
-    pk = _pk(db, "busy")
+    api_noproc.log_series("N1", "busy", 1, BATCH, seed=5)
+    pk = actuator_pk(db, "busy")
     assert api_noproc.app.state.kernels_warm.wait(300)
     fakf = ESTIMATORS["fakf"]
     real_step = fakf.step

@@ -10,29 +10,14 @@ import pytest
 from sqlalchemy import select
 
 from app.db import Database
-from app.models import Actuator, EstimatorState, HealthWindowRow, SampleOutputRow
+from app.models import EstimatorState, HealthWindowRow, SampleOutputRow
 from app.processing import service
 from app.processing.hot import HotStates
 from estimators.registry import ESTIMATORS
-from tests.app.conftest import Api
-from tests.conftest import make_series
+from tests.app.conftest import Api, actuator_pk
 
 N_BATCHES = 4
 BATCH = 600
-
-
-def _log(api: Api, act: str) -> None:
-    api.setup_actuator("N1", act)
-    s = make_series(N_BATCHES * BATCH, seed=11)
-    for k in range(N_BATCHES):
-        sl = slice(k * BATCH, (k + 1) * BATCH)
-        r = api.send_arrow("N1", act, f"b{k}", s.t_s[sl], {"current": s.current[sl], "voltage": s.voltage[sl]}, wait=0)
-        assert r.status_code == 202, r.text
-
-
-def _pk(db: Database, act: str) -> int:
-    with db.read() as s:
-        return int(s.scalar(select(Actuator.id).where(Actuator.actuator_id == act)))  # type: ignore[arg-type]
 
 
 def _apply_one(db: Database, pk: int, hot: HotStates | None) -> None:
@@ -57,11 +42,11 @@ def test_held_state_gives_the_outputs_of_a_stored_one(api_noproc: Api, db_url: s
                                                       monkeypatch: pytest.MonkeyPatch) -> None:
     """One worker applying batch after batch from its held state (the state is parsed once)
     stores what a worker reading the state from the store each time stores, bit for bit."""
-    _log(api_noproc, "held")
-    _log(api_noproc, "read")
+    api_noproc.log_series("N1", "held", N_BATCHES, BATCH, seed=11)
+    api_noproc.log_series("N1", "read", N_BATCHES, BATCH, seed=11)
     db = Database(db_url)
     try:
-        held, read = _pk(db, "held"), _pk(db, "read")
+        held, read = actuator_pk(db, "held"), actuator_pk(db, "read")
         for _ in range(N_BATCHES):
             _apply_one(db, read, None)
         hot = HotStates()
@@ -90,11 +75,11 @@ def test_state_applied_elsewhere_is_read_again(api_noproc: Api, db_url: str) -> 
     """Another process (its own engine) applies a batch in between: the state this process
     holds no longer matches the row, and is not used (stepping from it would skip that batch's
     effect on the state)."""
-    _log(api_noproc, "two")
-    _log(api_noproc, "ref")
+    api_noproc.log_series("N1", "two", N_BATCHES, BATCH, seed=11)
+    api_noproc.log_series("N1", "ref", N_BATCHES, BATCH, seed=11)
     here, elsewhere = Database(db_url), Database(db_url)
     try:
-        two, ref = _pk(here, "two"), _pk(here, "ref")
+        two, ref = actuator_pk(here, "two"), actuator_pk(here, "ref")
         for _ in range(N_BATCHES):
             _apply_one(elsewhere, ref, None)
         hot = HotStates()
@@ -113,11 +98,11 @@ def test_state_applied_elsewhere_is_read_again(api_noproc: Api, db_url: str) -> 
 def test_rolled_back_apply_leaves_no_usable_state(api_noproc: Api, db_url: str) -> None:
     """An apply whose transaction rolls back after the state was put: the row still holds the
     old state, the entry does not match it, and the batch is applied again from the row."""
-    _log(api_noproc, "rb")
-    _log(api_noproc, "ref")
+    api_noproc.log_series("N1", "rb", N_BATCHES, BATCH, seed=11)
+    api_noproc.log_series("N1", "ref", N_BATCHES, BATCH, seed=11)
     db = Database(db_url)
     try:
-        rb, ref = _pk(db, "rb"), _pk(db, "ref")
+        rb, ref = actuator_pk(db, "rb"), actuator_pk(db, "ref")
         for _ in range(N_BATCHES):
             _apply_one(db, ref, None)
         hot = HotStates()

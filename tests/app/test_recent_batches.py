@@ -17,11 +17,11 @@ from sqlalchemy.orm import Session
 from app.db import Database
 from app.ingest import ParsedBatch
 from app.main import create_app
-from app.models import Actuator, Stream
+from app.models import Stream
 from app.processing.processor import Processor
 from app.processing.recent import RecentBatches
 from app.telemetry.writer import LogWriter
-from tests.app.conftest import Api, make_settings
+from tests.app.conftest import Api, actuator_pk, make_settings
 from tests.conftest import make_series, migrated_pg_schema
 
 WRITER_THREAD = "fleethealth-log-writer"
@@ -30,11 +30,6 @@ WRITER_THREAD = "fleethealth-log-writer"
 def _batch(batch_id: str, lo: int, hi: int) -> ParsedBatch:
     s = make_series(1000, seed=11)
     return ParsedBatch(batch_id, s.t_s[lo:hi], {"current": s.current[lo:hi], "voltage": s.voltage[lo:hi]})
-
-
-def _pk(db: Database, act: str = "ema1") -> int:
-    with db.read() as s:
-        return int(s.scalar(select(Actuator.id).where(Actuator.actuator_id == act)))
 
 
 @pytest.fixture
@@ -64,7 +59,7 @@ def test_the_batch_is_held_when_its_commit_lands(api_noproc: Api, db_url: str, w
     writer_commits.append(lambda: held_at_commit.append(len(recent)))
     writer.start()
     try:
-        ack = writer.submit(_pk(db), _batch("b0", 0, 200)).result(30)
+        ack = writer.submit(actuator_pk(db), _batch("b0", 0, 200)).result(30)
     finally:
         writer.stop()
         db.dispose()
@@ -94,7 +89,7 @@ def test_an_apply_woken_by_the_commit_takes_the_decoded_batch(pg_url: str, write
         api.setup_actuator()
         assert api.app.state.kernels_warm.wait(300)
     db = Database(db_url)
-    pk = _pk(db)
+    pk = actuator_pk(db)
     processor = Processor(db, make_settings(db_url))
     recent = processor.recent
     assert recent is not None
@@ -150,10 +145,10 @@ def test_a_failed_commit_leaves_nothing_held(api_noproc: Api, db_url: str) -> No
     writer.start()
     try:
         with pytest.raises(RuntimeError, match="simulated"):
-            writer.submit(_pk(db), _batch("b0", 0, 100)).result(30)
+            writer.submit(actuator_pk(db), _batch("b0", 0, 100)).result(30)
         assert len(recent) == 0
         # The position the failed append had is given to the next batch: the held one is it.
-        ack = writer.submit(_pk(db), _batch("b1", 100, 200)).result(30)
+        ack = writer.submit(actuator_pk(db), _batch("b1", 100, 200)).result(30)
     finally:
         event.remove(Session, "before_commit", before_commit)
         writer.stop()
