@@ -1,16 +1,19 @@
 """Applies computed outside the write lock (SQLite): the estimators run while another writer
 holds the database's one write lock, and a stream whose rows changed between the computation
-and the store is applied again under the lock, so each batch is still applied once, in order."""
+and the store is applied again under the lock, so each batch is still applied once, in order.
+A small apply while nobody holds or waits for the lock runs in one write transaction instead,
+with the same outputs."""
 
 from __future__ import annotations
 
 import threading
 
 import pytest
-from sqlalchemy import select
+from sqlalchemy import event, select
 
 from app.db import Database
-from app.models import Actuator, HealthWindowRow, SampleOutputRow, Stream
+from app.models import Actuator, EstimatorState, HealthWindowRow, SampleOutputRow, Stream
+from app.processing import processor as processor_module
 from app.processing import service
 from app.processing.processor import Processor
 from estimators.registry import ESTIMATORS
@@ -20,11 +23,11 @@ from tests.conftest import make_series
 BATCH = 250
 
 
-def _log(api: Api, act: str, n: int) -> None:
+def _log(api: Api, act: str, n: int, size: int = BATCH) -> None:
     api.setup_actuator("N1", act)
-    s = make_series(n * BATCH, seed=5)
+    s = make_series(n * size, seed=5)
     for k in range(n):
-        sl = slice(k * BATCH, (k + 1) * BATCH)
+        sl = slice(k * size, (k + 1) * size)
         r = api.send_arrow("N1", act, f"b{k}", s.t_s[sl], {"current": s.current[sl], "voltage": s.voltage[sl]}, wait=0)
         assert r.status_code == 202, r.text
 
@@ -91,11 +94,13 @@ def test_unchanged_rows_are_stored_as_computed(api_noproc: Api, db_url: str) -> 
     assert (mark, outs, wins) == (2, [1, 2], [1, 2])
 
 
+@pytest.mark.parametrize("last_size", [None, 1], ids=["size-unknown", "last-apply-small"])
 def test_estimators_run_while_another_writer_holds_the_lock(
-    api_noproc: Api, db_url: str, monkeypatch: pytest.MonkeyPatch
+    api_noproc: Api, db_url: str, monkeypatch: pytest.MonkeyPatch, last_size: int | None
 ) -> None:
     """SQLite: the processor computes an apply without the write lock, so a log commit (here:
-    any writer holding the lock) does not wait for the estimators, only for the store."""
+    any writer holding the lock) does not wait for the estimators, only for the store; also
+    for a stream whose last apply was small (that one would run inside the lock were it free)."""
     db = Database(db_url)
     if not db.is_sqlite:
         db.dispose()
@@ -113,6 +118,8 @@ def test_estimators_run_while_another_writer_holds_the_lock(
 
     monkeypatch.setattr(fakf, "step", step)
     processor = Processor(db, make_settings(db_url))
+    if last_size is not None:
+        processor._sizes[pk] = last_size
     holder = db.write()
     session = holder.__enter__()
     session.connection()  # BEGIN IMMEDIATE: the file's write lock, and the process's mutex
@@ -128,3 +135,52 @@ def test_estimators_run_while_another_writer_holds_the_lock(
     assert ran_while_locked
     assert not worker.is_alive()
     assert (mark, outs) == (1, [1])
+
+
+def _stored(db: Database, pk: int) -> tuple[int, list[tuple[int, bytes]], list[tuple[int, object]], bytes | None]:
+    """Everything an apply stores for a stream, for comparing two streams fed the same series."""
+    with db.read() as s:
+        mark = int(s.scalar(select(Stream.last_applied_seq).where(Stream.actuator_pk == pk)))  # type: ignore[arg-type]
+        outs = [(r.seq, r.payload) for r in s.scalars(
+            select(SampleOutputRow).where(SampleOutputRow.actuator_pk == pk).order_by(SampleOutputRow.id))]
+        wins = [(r.seq, r.indicators) for r in s.scalars(
+            select(HealthWindowRow).where(HealthWindowRow.actuator_pk == pk).order_by(HealthWindowRow.id))]
+        state = s.scalar(select(EstimatorState.state).where(EstimatorState.actuator_pk == pk))
+    return mark, outs, wins, state
+
+
+def test_small_applies_with_the_lock_free_take_one_transaction_and_store_the_same(
+    api_noproc: Api, db_url: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """SQLite: once a stream's applies are known to be small and nobody waits for the write
+    lock, an apply is one write transaction (not a read transaction and a write transaction);
+    what it stores is bit for bit what applies computed outside the lock store."""
+    db = Database(db_url)
+    if not db.is_sqlite:
+        db.dispose()
+        pytest.skip("PostgreSQL applies in one transaction under the streams' row locks anyway")
+    n, size = 12, 10
+    _log(api_noproc, "inlock", n, size)
+    _log(api_noproc, "outside", n, size)
+    pk_in, pk_out = _pk(db, "inlock"), _pk(db, "outside")
+    settings = make_settings(db_url, processor_max_batches_per_txn=1)
+    begins: list[str] = []
+    event.listen(db.engine, "begin", lambda conn: begins.append("begin"))
+
+    def transactions_of_one_apply(processor: Processor, pk: int) -> int:
+        begins.clear()
+        assert processor._apply_group([pk], {})[1] == 1
+        return len(begins)
+
+    in_lock = Processor(db, settings)
+    counts_in = [transactions_of_one_apply(in_lock, pk_in) for _ in range(n)]
+    monkeypatch.setattr(processor_module, "IN_LOCK_MAX_SAMPLES", 0)  # always computed outside
+    outside = Processor(db, settings)
+    counts_out = [transactions_of_one_apply(outside, pk_out) for _ in range(n)]
+    got_in, got_out = _stored(db, pk_in), _stored(db, pk_out)
+    db.dispose()
+    assert counts_in == [2] + [1] * (n - 1)  # the first apply's size is not known yet
+    assert counts_out == [2] * n
+    assert got_in[0] == got_out[0] == n
+    assert [seq for seq, _ in got_in[1]] == list(range(1, n + 1))  # each batch once, in order
+    assert got_in[1:] == got_out[1:]  # outputs, windows and the state, bit for bit
