@@ -22,7 +22,10 @@ their pending batches in one transaction (up to ``processor_max_streams_per_txn`
 ``processor_max_samples_per_txn`` samples), each stream inside its own savepoint so that one
 stream's error rolls back only that stream. Subscribers and ``?wait=`` hear of each apply after the
 commit. On PostgreSQL the transaction also carries a ``NOTIFY`` per stream (its applied mark and its
-fleet events), delivered to API processes when it commits (:mod:`app.processing.wakeups`).
+fleet events), delivered to API processes when it commits (:mod:`app.processing.wakeups`). On
+SQLite the estimators run in a read transaction, outside the one write lock, and a short write
+transaction stores them; a small apply while nobody holds or waits for that lock is one write
+transaction (``_apply_in_lock``).
 
 A failed stream keeps logging batches (they are durable) but is not applied; ``.../health``, the
 fleet board and ``/metrics`` show it, and a ``?wait`` on one of its batches answers at once.
@@ -352,7 +355,7 @@ class Processor:
     ) -> tuple[list[ApplyResult], list[int]] | None:
         """SQLite, a small apply while no other writer holds or waits for the write lock: the
         whole apply in one write transaction, as on PostgreSQL, without the read transaction
-        and the second read of the rows that computing outside the lock costs (about a third
+        and the second read of the rows that computing outside the lock costs (about a sixth
         of a one-sample apply). A writer that comes meanwhile waits for the computation too,
         which for at most ``IN_LOCK_MAX_SAMPLES`` samples is short. None, with nothing
         written, when the lock is taken or waited for, or the pending batches turn out larger
