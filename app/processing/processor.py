@@ -75,6 +75,12 @@ STREAM_FAILURES = Counter(
     "fleethealth_stream_failures_total", "Streams marked failed", ["cause"]
 )
 STREAMS_FAILED = Gauge("fleethealth_streams_failed", "Streams marked failed (not applied)")
+APPLY_GROUPS = Counter(
+    "fleethealth_apply_groups_total",
+    "Apply transactions that stored something, by how they ran: one_transaction (SQLite, small, "
+    "the lock free; PostgreSQL always), computed_outside (SQLite: a read transaction, then the store)",
+    ["path"],
+)
 APPLY_SECONDS = Histogram(
     "fleethealth_apply_seconds",
     "Duration of one apply transaction",
@@ -285,9 +291,11 @@ class Processor:
         alone = len(pks) == 1
         try:
             in_lock = self._apply_in_lock(pks, t0, errors, idle, alone) if self._small(pks) else None
+            path = "one_transaction"
             if in_lock is not None:
                 results, left = in_lock
             elif self.db.is_sqlite:
+                path = "computed_outside"
                 with self.db.read() as rs:
                     prepared, left = self._prepare(rs, pks, t0, errors, idle)
                 if prepared:
@@ -308,6 +316,7 @@ class Processor:
                 self._attempt_failed(pk, commit_exc)
             return [], 0
         if results:
+            APPLY_GROUPS.labels(path).inc()
             APPLY_SECONDS.observe(time.perf_counter() - t0)
             if sum(r.samples for r in results) >= RELEASE_AFTER_SAMPLES:
                 release_memory()  # the freed batches' heap back to the OS (docs/operations.md)
