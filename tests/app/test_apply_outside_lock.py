@@ -184,3 +184,26 @@ def test_small_applies_with_the_lock_free_take_one_transaction_and_store_the_sam
     assert got_in[0] == got_out[0] == n
     assert [seq for seq, _ in got_in[1]] == list(range(1, n + 1))  # each batch once, in order
     assert got_in[1:] == got_out[1:]  # outputs, windows and the state, bit for bit
+
+
+def test_a_larger_batch_after_small_ones_is_computed_outside_the_lock(api_noproc: Api, db_url: str) -> None:
+    """SQLite: a stream whose last apply was small sends a larger batch: the one-transaction
+    path finds it over the bound and writes nothing, and the batch is computed outside the lock
+    and applied once."""
+    db = Database(db_url)
+    if not db.is_sqlite:
+        db.dispose()
+        pytest.skip("PostgreSQL applies in one transaction under the streams' row locks anyway")
+    _log(api_noproc, "grows", 1)  # one batch of BATCH samples, above the bound
+    pk = _pk(db, "grows")
+    processor = Processor(db, make_settings(db_url))
+    processor._sizes[pk] = 1  # as if its last apply had been one sample
+    begins: list[str] = []
+    event.listen(db.engine, "begin", lambda conn: begins.append("begin"))
+    assert processor._apply_group([pk], {})[1] == 1
+    transactions = len(begins)
+    mark, outs, _ = _applied(db, pk)
+    db.dispose()
+    assert transactions == 3  # the write transaction left empty, then the read and the store
+    assert (mark, outs) == (1, [1])
+    assert processor._sizes[pk] == BATCH
