@@ -148,6 +148,20 @@ class FairWriteLock:
                 self._cond.wait()
             self._owner, self._depth = me, 1
 
+    def try_enter(self) -> bool:
+        """Take the lock only if nobody holds it or waits for it (or this thread holds it);
+        False, without waiting, otherwise."""
+        me = threading.get_ident()
+        with self._cond:
+            if self._owner == me:
+                self._depth += 1
+                return True
+            if self._serving != self._next_ticket:  # held, or a writer queued
+                return False
+            self._next_ticket += 1
+            self._owner, self._depth = me, 1
+            return True
+
     def __exit__(self, *exc: object) -> None:
         with self._cond:
             self._depth -= 1
@@ -217,6 +231,21 @@ class Database:
             return
         with self._write_mutex, factory() as session, session.begin():
             yield session
+
+    @contextmanager
+    def write_if_free(self, *, durable: bool = True) -> Iterator[Session | None]:
+        """SQLite: :meth:`write` when no other writer of this process holds or waits for the
+        write lock, else None at once (the caller does its work another way). PostgreSQL:
+        always None (its writers do not share one lock)."""
+        if self._write_mutex is None or not self._write_mutex.try_enter():
+            yield None
+            return
+        try:
+            factory = self._write if durable else self._write_recomputable
+            with factory() as session, session.begin():
+                yield session
+        finally:
+            self._write_mutex.__exit__()
 
     def dispose(self) -> None:
         self.engine.dispose()

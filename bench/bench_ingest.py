@@ -657,20 +657,29 @@ def run_backend(
             print(f"[{backend}] applies that found their batch decoded in memory: "
                   f"{recent.get('hit', 0):.0f} hits, {recent.get('miss', 0):.0f} decoded from the log "
                   f"({recent.get('not_held', 0):.0f} batches not held: the bound was reached)", flush=True)
+        groups = metric_by_label(server, "fleethealth_apply_groups_total", "path")
+        if groups:
+            print(f"[{backend}] apply transactions: " + ", ".join(f"{v:.0f} {k}" for k, v in sorted(groups.items())),
+                  flush=True)
     return {"rows": rows, "memory": memory, "rate": rate, "recent": recent}
 
 
 def recent_batches(server: Server) -> dict[str, float]:
     """The server's ``fleethealth_recent_batches_total`` by outcome (empty when it has none)."""
+    return metric_by_label(server, "fleethealth_recent_batches_total", "outcome")
+
+
+def metric_by_label(server: Server, name: str, label: str) -> dict[str, float]:
+    """A counter of the server's ``/metrics`` by one label (empty when it has none)."""
     import httpx
 
     text = httpx.get(server.url + "/metrics", headers={"Authorization": f"Bearer {server.api_key}"},
                      timeout=30.0).text
     out: dict[str, float] = {}
     for line in text.splitlines():
-        if line.startswith("fleethealth_recent_batches_total{"):
-            label = line.split('outcome="', 1)[1].split('"', 1)[0]
-            out[label] = float(line.rsplit(" ", 1)[1])
+        if line.startswith(name + "{"):
+            value = line.split(f'{label}="', 1)[1].split('"', 1)[0]
+            out[value] = float(line.rsplit(" ", 1)[1])
     return out
 
 
