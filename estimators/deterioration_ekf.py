@@ -92,7 +92,7 @@ from estimators.kernels import dekf_kernels as kern
 from estimators.simulators.friction_drive import FrictionDriveParams
 
 NAME = "deterioration_ekf"
-STATE_VERSION = 5
+STATE_VERSION = 6
 CHANNELS = ("current", "motor_speed", "wheel_speed")
 STATE_NAMES = ("w1", "w2", "alpha", "m")
 SAMPLE_OUTPUTS = (
@@ -677,6 +677,9 @@ _FRESH_NAN = (
     kern.ST_HIST_ELL,
     kern.ST_HIST_RATE,
     kern.ST_HIST_VAR,
+    kern.ST_HIST_W,
+    kern.ST_HIST_W + 1,
+    kern.ST_HIST_M,
     kern.ST_RUL_STATUS,
     *range(kern.ST_Y_HIST, kern.ST_Y_HIST + 6),
     kern.ST_Y_RES,
@@ -753,7 +756,14 @@ def _upgrade_v4(doc: dict[str, Any]) -> dict[str, Any]:
     """Version 4 -> 5: the dwell record of an observed load (nothing counted yet) is inserted
     before the observed-load ring; the next prognosis counts the ring's bins into it, its first
     run censored, as after a gap."""
-    return _insert_fresh(doc, kern.ST_BASE_LEN_V4, kern.ST_BASE_LEN, 5)
+    return _insert_fresh(doc, kern.ST_BASE_LEN_V4, kern.ST_BASE_LEN_V5, 5)
+
+
+def _upgrade_v5(doc: dict[str, Any]) -> dict[str, Any]:
+    """Version 5 -> 6: the last prognosis' speeds and m-hat (NaN) are inserted before the
+    observed-load ring; the next comparison of the prognosis record is skipped (nothing to
+    predict its span from) and the record goes on from the prognosis after."""
+    return _insert_fresh(doc, kern.ST_BASE_LEN_V5, kern.ST_BASE_LEN, 6)
 
 
 _UPGRADES: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {
@@ -761,6 +771,7 @@ _UPGRADES: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {
     2: _upgrade_v2,
     3: _upgrade_v3,
     4: _upgrade_v4,
+    5: _upgrade_v5,
 }
 
 
@@ -1055,7 +1066,7 @@ def dwell_record_of(vec: FloatArray) -> rulmod.DwellRecord:
         restarts=float(vec[kern.ST_DW_RESTARTS]),
         hist=(
             tuple(float(v) for v in vec[kern.ST_DW_HIST : kern.ST_DW_HIST + kern.DW_HIST_BINS]),
-            tuple(float(v) for v in vec[kern.ST_DW_HIST + kern.DW_HIST_BINS : kern.ST_RING]),
+            tuple(float(v) for v in vec[kern.ST_DW_HIST + kern.DW_HIST_BINS : kern.ST_DW_HIST + 2 * kern.DW_HIST_BINS]),
         ),
     )
 
@@ -1073,7 +1084,7 @@ def _store_dwell_record(vec: FloatArray, record: rulmod.DwellRecord) -> None:
     ):
         vec[i : i + 2] = v
     vec[kern.ST_DW_RESTARTS] = record.restarts
-    vec[kern.ST_DW_HIST : kern.ST_RING] = np.concatenate([record.hist[0], record.hist[1]])
+    vec[kern.ST_DW_HIST : kern.ST_DW_HIST + 2 * kern.DW_HIST_BINS] = np.concatenate([record.hist[0], record.hist[1]])
 
 
 def _observed_dwells(
@@ -1112,21 +1123,45 @@ def _predicted_rate(
     return float(-change / seg_d.sum())
 
 
-def _record_rate_error(
-    vec: FloatArray, t_s: float, ell: float, var_ell: float, rate_now: float, renewal_var_s: float = 0.0
-) -> None:
-    """Compare the wear (``-d ln alpha``) realized since the previous prognosis with the
-    predicted one (trapezoid of the rates predicted then and now under the assumed load, so
-    that the drift of the rate as alpha wears is not counted as an error), and add the
-    relative error, the part of its square the filter's variances explain, and both changes to
-    the stream's record."""
-    t0 = vec[kern.ST_HIST_T]
-    rate = vec[kern.ST_HIST_RATE]
+def _predicted_span_wear(
+    config: DekfConfig, plant: FloatArray, vec: FloatArray, t_s: float, rate_now: float
+) -> float:
+    """The wear (``-d ln alpha``) the previous prognosis' model predicts for the span from it to
+    ``t_s`` (NaN: no prediction, m-hat had not converged then). A law of the load
+    (:func:`rulmod.span_wear`): propagated from that prognosis' state through the law's
+    current over the span. An observed load, whose current over the span was not the assumed
+    one: the span times the trapezoid of the rates predicted then and now (so that the drift
+    of the rate as alpha wears is not counted as an error)."""
+    t0 = float(vec[kern.ST_HIST_T])
+    rate = float(vec[kern.ST_HIST_RATE])
     if not (math.isfinite(t0) and math.isfinite(rate) and rate > 0.0 and t_s > t0):
-        return
+        return math.nan
+    load = config.rul_load
+    if not isinstance(load, rulmod.ObservedLoad):
+        segments = rulmod.load_segments(load, t0)
+        state = (
+            float(vec[kern.ST_HIST_W]),
+            float(vec[kern.ST_HIST_W + 1]),
+            float(vec[kern.ST_HIST_ELL]),
+            float(vec[kern.ST_HIST_M]),
+        )
+        if segments is None or not all(math.isfinite(v) for v in state):
+            return math.nan
+        return rulmod.span_wear(plant, segments, state, t_s - t0, config.rul_segment_tol)
     if math.isfinite(rate_now) and rate_now > 0.0:
         rate = 0.5 * (rate + rate_now)
-    predicted = rate * (t_s - t0)
+    return rate * (t_s - t0)
+
+
+def _record_rate_error(
+    vec: FloatArray, t_s: float, ell: float, var_ell: float, predicted: float, renewal_var_s: float = 0.0
+) -> None:
+    """Compare the wear (``-d ln alpha``) realized since the previous prognosis with the
+    ``predicted`` one (:func:`_predicted_span_wear`), and add the relative error, the part of
+    its square the filter's variances explain, and both changes to the stream's record."""
+    t0 = vec[kern.ST_HIST_T]
+    if not (math.isfinite(predicted) and predicted > 0.0 and t_s > t0):
+        return
     realized = vec[kern.ST_HIST_ELL] - ell
     if not (math.isfinite(realized) and math.isfinite(var_ell)):
         return
@@ -1246,8 +1281,9 @@ def prognosis_at(config: DekfConfig, row: FloatArray, vec: FloatArray) -> RulEst
     rate_now = _predicted_rate(config, plant, segments, x[2], x[3]) if converged else math.nan
     if config.rul_model_error:
         _record_rate_error(
-            vec, t_s, ell, var_ell, rate_now, dwells.renewal_var_s if dwells is not None else 0.0
-        )
+            vec, t_s, ell, var_ell, _predicted_span_wear(config, plant, vec, t_s, rate_now),
+            dwells.renewal_var_s if dwells is not None else 0.0,
+        )  # fmt: skip
     extra_var = rate_error_var(vec) if config.rul_model_error else 0.0
     ratio = rate_ratio(vec) if config.rul_model_error else 1.0
     # an estimated alpha0 moves the failure level alpha0 (1 - Dn_f): a relative error eps of
@@ -1280,6 +1316,8 @@ def prognosis_at(config: DekfConfig, row: FloatArray, vec: FloatArray) -> RulEst
     vec[kern.ST_HIST_ELL] = ell
     vec[kern.ST_HIST_VAR] = var_ell
     vec[kern.ST_HIST_RATE] = rate_now
+    vec[kern.ST_HIST_W : kern.ST_HIST_W + 2] = x[:2]
+    vec[kern.ST_HIST_M] = x[3]
     vec[kern.ST_RUL_STATUS] = STATUSES.index(status)
     assumption: dict[str, Any] = {
         "load": rulmod.load_to_dict(config.rul_load),

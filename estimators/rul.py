@@ -589,6 +589,42 @@ def load_segments(
     return _rotate(durations, currents, float(np.mod(t_s - t0, period)))
 
 
+def span_wear(
+    plant: FloatArray,
+    segments: tuple[FloatArray, FloatArray],
+    state: tuple[float, float, float, float],
+    span_s: float,
+    eps_seg: float,
+) -> float:
+    """The change of ``-ln alpha`` over ``span_s`` from ``state = (w1, w2, ln alpha, m)``
+    under the load whose period from the state's time is ``segments``, propagated as the
+    prognosis propagates (:func:`kern.one_period`, whole periods then the span's part of the
+    next): the speeds' lag, the drift of the rate and the load's phase over the span are in it.
+    """
+    seg_d = np.ascontiguousarray(segments[0], dtype=np.float64)
+    seg_c = np.ascontiguousarray(segments[1], dtype=np.float64)
+    w1, w2, ell, m = state
+    period = float(seg_d.sum())
+    if not (period > 0.0 and span_s >= 0.0 and m > 0.0):
+        return math.nan
+    whole = int(span_s // period)
+    rest = span_s - whole * period
+    memo = np.zeros((seg_d.shape[0], kern.MAX_SUB + 2))
+    end = ell
+    for _ in range(whole):
+        w1, w2, end, _ = kern.one_period(plant, seg_d, seg_c, w1, w2, end, m, -math.inf, eps_seg, memo)
+    if rest > 0.0:
+        ends = np.cumsum(seg_d)
+        j = min(int(np.searchsorted(ends, rest, side="right")), seg_d.shape[0] - 1)
+        part_d = np.append(seg_d[:j], rest - (ends[j - 1] if j > 0 else 0.0))
+        part_c = np.ascontiguousarray(seg_c[: j + 1])
+        part_memo = np.zeros((j + 1, kern.MAX_SUB + 2))
+        _, _, end, _ = kern.one_period(
+            plant, part_d, part_c, w1, w2, end, m, -math.inf, eps_seg, part_memo
+        )
+    return float(ell - end)
+
+
 # ----------------------------------------------------------------------------- prognosis
 @dataclass(frozen=True)
 class PrognosisSettings:

@@ -392,9 +392,13 @@ def where_missed(all_a: dict[str, float], tele: dict[str, float], mis: dict[str,
     if all_a["coverage"] > 0.95:
         out.append(f"The 5-95 % intervals are too wide ({_fmt(all_a['coverage'])} % coverage), most where the "
                    f"model is right (exact plant, no skew: {_fmt(clean['coverage'])} %; square wave: "
-                   f"{_fmt(square['coverage'])} %): the model-error term from the stream's record of realised "
-                   "against predicted wear also counts the predicted rate's own error (one period's drift "
-                   "probe) as model error.")
+                   f"{_fmt(square['coverage'])} %). There the stream's record of realised against predicted "
+                   "wear adds next to nothing (its prediction is the model's own propagation over each span); "
+                   "the width is the filter's covariance and the assumed random walk of m (`m_walk_rel`) over "
+                   "the remaining life, whereas these drives' m is constant, and the coverage is nearly all "
+                   "or nothing per drive (a drive the filter gets right is covered at every prognosis, one "
+                   "whose plant or skew stays off is biased), so narrower intervals would uncover the "
+                   "biased drives first.")
     elif all_a["coverage"] < 0.80:
         out.append(f"The 5-95 % intervals are too narrow ({_fmt(all_a['coverage'])} % coverage).")
     out.append("alpha is inside its 3-sigma band least often at 50-100 Hz and with skewed channels: a skew or "

@@ -187,8 +187,12 @@ ST_DW_SUM2 = 268  # 2: their summed squared lengths
 ST_DW_RESTARTS = 270  # restarts of the record by the stationarity check
 ST_DW_HIST = 271  # 2 x DW_HIST_BINS: histogram of the whole dwells' lengths, low then high
 DW_HIST_BINS = 40
-ST_RING = 351  # bins currents, then bins durations
-ST_BASE_LEN = 351
+# version 6: the last prognosis' state, from which the prognosis record predicts the next span
+ST_HIST_W = 351  # 2: its w1-hat, w2-hat (NaN: none)
+ST_HIST_M = 353  # its m-hat
+ST_RING = 354  # bins currents, then bins durations
+ST_BASE_LEN = 354
+ST_BASE_LEN_V5 = 351
 ST_BASE_LEN_V4 = 257
 ST_BASE_LEN_V3 = 251
 ST_BASE_LEN_V1 = 49

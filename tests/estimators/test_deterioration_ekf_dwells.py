@@ -185,12 +185,12 @@ def test_version_4_state_loads_and_steps() -> None:
     blob = (DATA / "deterioration_ekf_state_v4.bin").read_bytes()
     assert b'"version":4' in blob
     state = de.load_state(blob)
-    assert state.version == de.STATE_VERSION == 5
+    assert state.version == de.STATE_VERSION == 6
     drive, t, ch = _telegraph_drive(73_005, 60.0)
     cfg = _config(drive)
     assert state.vector.shape[0] == kern.ST_BASE_LEN + 2 * RING_BINS
     assert np.isnan(state.vector[kern.ST_DW_T : kern.ST_DW_RUN + 1]).all()
-    assert (state.vector[kern.ST_DW_EXPO : kern.ST_RING] == 0.0).all()
+    assert (state.vector[kern.ST_DW_EXPO : kern.ST_HIST_W] == 0.0).all()
     assert state.vector[kern.ST_OB_FILLED] == RING_BINS
     keep = t > state.t_last_s
     new_state, out = de.step(

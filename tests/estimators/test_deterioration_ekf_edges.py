@@ -218,7 +218,7 @@ def test_version_3_state_loads_and_steps() -> None:
     blob = (DATA / "deterioration_ekf_state_v3.bin").read_bytes()
     assert b'"version":3' in blob
     state = de.load_state(blob)
-    assert state.version == de.STATE_VERSION == 5
+    assert state.version == de.STATE_VERSION == 6
     assert state.vector.shape[0] == kern.ST_BASE_LEN
     assert np.isnan(state.vector[kern.ST_Y_RES : kern.ST_Y_RES + 2]).all()
     assert (state.vector[kern.ST_QTL_RES : kern.ST_N_QTL_RES + 2] == 0.0).all()

@@ -450,3 +450,105 @@ def test_profile_segments_merge_within_tolerance() -> None:
     b = rulmod.prognose(plant, 10.0, x, cov, 3.0, merged, settings)
     assert a.q50_s is not None and b.q50_s is not None
     assert b.q50_s == pytest.approx(a.q50_s, rel=0.05)
+
+
+@pytest.mark.parametrize("seed", [511, 512, 513])
+def test_record_explains_the_wear_of_an_exact_model(seed: int) -> None:
+    """The model exact (plant, load law, constant m), prognoses every 1.37 periods: the
+    record's predicted wear between two prognoses is the model's own propagation from the
+    previous prognosis' state through the span's current (the load's phase over a span that
+    is not a whole number of periods, the speeds' lag and the drift of the rate are in it), so
+    the record's relative errors stay near the noise of ln(alpha-hat) and hardly widen the
+    intervals. One period's drift-probe rate times the span read the phase as errors of 5-15 %
+    rms (model_error_rel_std 0.06-0.14)."""
+    drive = drive_of(seed, m=0.01, failure_dn=0.6)
+    data = fs.simulate_drive(drive, max_s=600.0)
+    assert data is not None
+    p = drive.load_params
+    raw = {
+        "alpha0": drive.alpha0,
+        "rul_failure_dn": 0.6,
+        "dn_watch": 0.36,
+        "dn_alert": 0.48,
+        "rul_every_s": round(1.37 * p["period_s"], 3),
+        "rul_trajectories": 50,
+        "rul_load": {
+            "kind": "square_wave",
+            "high_a": p["high_a"],
+            "low_a": p["low_a"],
+            "period_s": p["period_s"],
+            "duty": p["duty"],
+            "t0_s": p["phase_s"],
+        },
+    }
+    state, out = run(raw, data.t_s, data.channels)
+    vec = state.vector
+    assert vec[kern.ST_ERR_N] >= de.MIN_RECORD
+    assert math.sqrt(vec[kern.ST_ERR_SUM2] / vec[kern.ST_ERR_N]) < 0.02
+    widen = [r.assumption["model_error_rel_std"] for r in out.rul if r.t_s < data.t_fail_s]
+    assert float(np.median(widen)) < 0.03
+
+
+def test_span_wear_is_the_propagation_through_the_spans_current() -> None:
+    """``span_wear`` over 2.5 periods of a square wave equals the wear of the span's segments
+    propagated in one piece (first pass of one_period over the span laid out), and differs
+    from 2.5 periods' mean wear by where the span starts."""
+    from estimators.simulators.friction_drive import FrictionDriveParams
+
+    plant = FrictionDriveParams().as_array()
+    seg_d = np.array([0.6, 0.9])
+    seg_c = np.array([20.0, 0.0])
+    al = 8.0
+    s1, s2, *_ = kern.periodic_steady_state(plant, seg_d, seg_c, al)
+    state = (s1, s2, math.log(al), 0.005)
+    got = rulmod.span_wear(plant, (seg_d, seg_c), state, 2.5 * 1.5, 1e-4)
+    laid_d = np.array([0.6, 0.9, 0.6, 0.9, 0.6, 0.15])
+    laid_c = np.array([20.0, 0.0, 20.0, 0.0, 20.0, 0.0])
+    memo = np.zeros((laid_d.shape[0], kern.MAX_SUB + 2))
+    _, _, end, _ = kern.one_period(plant, laid_d, laid_c, s1, s2, math.log(al), 0.005, -math.inf, 1e-4, memo)
+    assert got == pytest.approx(math.log(al) - end, rel=1e-6)
+    memo = np.zeros((2, kern.MAX_SUB + 2))
+    _, _, one, _ = kern.one_period(plant, seg_d, seg_c, s1, s2, math.log(al), 0.005, -math.inf, 1e-4, memo)
+    assert got > 1.05 * 2.5 * (math.log(al) - one)  # the span ends after a high part
+
+
+def test_version_5_state_loads_and_steps() -> None:
+    """Bytes dumped by the version-5 code (a square-wave drive, 60 s, three comparisons in the
+    prognosis record) load and upgrade to version 6 with the last prognosis' speeds and m-hat
+    NaN (the rest unchanged); the first comparison after it is skipped (nothing to predict its
+    span from) and the record goes on from the next."""
+    blob = (DATA / "deterioration_ekf_state_v5.bin").read_bytes()
+    assert b'"version":5' in blob
+    state = de.load_state(blob)
+    assert state.version == de.STATE_VERSION == 6
+    assert state.vector.shape[0] == kern.ST_BASE_LEN
+    assert np.isnan(state.vector[kern.ST_HIST_W : kern.ST_HIST_M + 1]).all()
+    n_before = float(state.vector[kern.ST_ERR_N])
+    assert n_before > 0.0 and math.isfinite(state.vector[kern.ST_HIST_RATE])
+    drive = fs.draw_drive(73_007, rate_hz=100.0, load="square", mismatch=False, skew=False)
+    p = drive.load_params
+    config = de.parse_config(
+        {
+            "alpha0": drive.alpha0,
+            "rul_every_s": 5.0,
+            "rul_trajectories": 50,
+            "rul_load": {
+                "kind": "square_wave",
+                "high_a": p["high_a"],
+                "low_a": p["low_a"],
+                "period_s": p["period_s"],
+                "duty": p["duty"],
+                "t0_s": p["phase_s"],
+            },
+        }
+    )
+    t, ch, _ = fs.telemetry(drive, 80.0)
+    first = (t > state.t_last_s) & (t <= 62.0)
+    mid, out = de.step(config, state, Batch(t_s=t[first], channels={k: v[first] for k, v in ch.items()}))
+    assert len(out.rul) == 1
+    assert mid.vector[kern.ST_ERR_N] == n_before
+    assert np.isfinite(mid.vector[kern.ST_HIST_W : kern.ST_HIST_M + 1]).all()
+    rest = t > 62.0
+    end, out = de.step(config, mid, Batch(t_s=t[rest], channels={k: v[rest] for k, v in ch.items()}))
+    assert len(out.rul) == 3
+    assert end.vector[kern.ST_ERR_N] > n_before * de.RECORD_FORGETTING**3
