@@ -728,7 +728,7 @@ def deflection_gate(cfg: FloatArray, defl_var: float) -> float:
     ``CFG_MIN_ERR`` and at least ``CFG_MIN_ERR_STD`` posterior standard deviations of the
     estimate (an estimate closer to the command than its own uncertainty does not show that
     the surface left its command)."""
-    gate = cfg[CFG_MIN_ERR]
+    gate = float(cfg[CFG_MIN_ERR])
     if cfg[CFG_MIN_ERR_STD] > 0.0 and defl_var > 0.0 and math.isfinite(defl_var):
         gate = max(gate, cfg[CFG_MIN_ERR_STD] * math.sqrt(defl_var))
     return gate
