@@ -341,6 +341,13 @@ class StmmaeConfig(EstimatorConfigModel):
         le=180.0,
         description="smallest |deflection estimate - command| for a detection, deg",
     )
+    min_deflection_error_std: Number = Field(
+        1.5,
+        ge=0.0,
+        le=10.0,
+        description="smallest |deflection estimate - command| for a detection in posterior "
+        "standard deviations of the estimate (0: off; the larger of the two gates applies)",
+    )
     nis_watch: Number = Field(
         3.0,
         gt=0.0,
@@ -474,6 +481,7 @@ def _kernel_vector(config: StmmaeConfig) -> FloatArray:
     cfg[kern.CFG_WINDOW] = config.health_window_samples
     cfg[kern.CFG_SMOOTH_S] = config.deflection_smoothing_s
     cfg[kern.CFG_MIN_ERR] = math.radians(config.min_deflection_error_deg)
+    cfg[kern.CFG_MIN_ERR_STD] = config.min_deflection_error_std
     cfg[kern.CFG_LIMIT] = math.radians(config.deflection_limit_deg)
     cfg[kern.CFG_KIND_WINDOW_S] = config.fault_kind_window_s
     cfg[kern.CFG_REBASE] = 1.0 if config.rebase_on_detection else 0.0

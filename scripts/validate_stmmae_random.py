@@ -335,8 +335,8 @@ def report(
         "development of the decision logic used seeds below 100 and 400-2425, a first run on "
         "seeds 1000+, 2000+, 3000+ set the evidence level, a second run used 11000+, 12000+, "
         "13000+; the last three revisions report the same flights, 21000+, 22000+, 23000+ "
-        "(`--seed-offset 10000`), this revision was developed on 41000+, 42000+, 43000+ and "
-        "is also reported on the untouched 31000+, 32000+, 33000+: "
+        "(`--seed-offset 10000`), this revision was developed on 61000+ and 71000+, 72000+, "
+        "73000+: "
         "`docs/methods-stmmae.md`, 'Goals and what was measured'): "
         f"{len(singles)} flights with one fault, {len(pairs)} with two overlapping faults, "
         f"{len(free)} fault-free flights ({free_h:.2f} h). Generator: "
@@ -440,7 +440,9 @@ def report(
             f"fault probability above `detect_probability`: "
             f"{int(sum(m['runs_probability'] for m in margins))} "
             f"(in {sum(m['runs_probability'] > 0 for m in margins)} flights), of which the "
-            "smoothed deflection error was also above `min_deflection_error_deg`: "
+            "smoothed deflection error was also above `min_deflection_error_deg` (the fixed "
+            "part of the deflection gate; its part in posterior standard deviations is not "
+            "replicated here): "
             f"{int(sum(m['runs_probability_and_deflection'] for m in margins))}; the "
             "likelihood-ratio condition is the third gate.",
             "",

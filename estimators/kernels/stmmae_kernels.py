@@ -63,7 +63,8 @@ CFG_MIN_LLR = 18  # smallest log-likelihood ratio (fault vs no-fault) summed ove
 CFG_OSC_CORR = 19  # autocorrelation level below which a deflection history is oscillating
 CFG_OSC_SWING = 20  # swing (rad) an oscillating fault must also exceed
 CFG_HOLD_ACTIVE_S = 21  # detection hold time while another surface is in fault
-CFG_LEN = 22
+CFG_MIN_ERR_STD = 22  # smallest |deflection estimate - command| in posterior std of the estimate
+CFG_LEN = 23
 
 KIND_BLOCK_S = 0.05  # the kind test reads the deflection estimate as means over 0.05 s blocks
 KIND_BLOCKS = 200  # capacity of the block history: fault_kind_window_s <= 10 s
@@ -722,6 +723,18 @@ def _judge_kind(cfg: FloatArray, dec: FloatArray, kbuf: FloatArray, h: int) -> N
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def deflection_gate(cfg: FloatArray, defl_var: float) -> float:
+    """Smallest |smoothed deflection estimate - command| (rad) for a detection: at least
+    ``CFG_MIN_ERR`` and at least ``CFG_MIN_ERR_STD`` posterior standard deviations of the
+    estimate (an estimate closer to the command than its own uncertainty does not show that
+    the surface left its command)."""
+    gate = float(cfg[CFG_MIN_ERR])
+    if cfg[CFG_MIN_ERR_STD] > 0.0 and defl_var > 0.0 and math.isfinite(defl_var):
+        gate = max(gate, cfg[CFG_MIN_ERR_STD] * math.sqrt(defl_var))
+    return gate
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def _start_run(dec: FloatArray, h: int, t: float) -> None:
     """A new run of the detection conditions starts at ``t``: reset its evidence and kind span."""
     dec[h, D_ABOVE_T] = t
@@ -788,7 +801,7 @@ def _decide(
         holds = (
             prob > cfg[CFG_DETECT_P]
             and iso > cfg[CFG_DETECT_P]
-            and abs(dec[h, D_SMOOTH] - cmd) > cfg[CFG_MIN_ERR]
+            and abs(dec[h, D_SMOOTH] - cmd) > deflection_gate(cfg, defl_var)
         )
         if holds:
             if math.isnan(dec[h, D_ABOVE_T]):

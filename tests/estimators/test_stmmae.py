@@ -638,10 +638,13 @@ def test_config_model_schema_and_named_state_parts() -> None:
 
 
 # ----------------------------------------------------------------------------- decision logic
-def _decide_run(config, probs, defl_deg, cmd_deg, llrs, dt=0.01, others_active=False):
+def _decide_run(
+    config, probs, defl_deg, cmd_deg, llrs, dt=0.01, others_active=False, defl_std_deg=0.57
+):
     """Feed one surface's decision logic a sequence of (probability, deflection, command,
-    log-likelihood ratio) samples (``others_active``: another surface is in fault); return the
-    codes raised and the decision fields."""
+    log-likelihood ratio) samples (``others_active``: another surface is in fault;
+    ``defl_std_deg``: posterior std of the deflection estimate); return the codes raised and
+    the decision fields."""
     cfg = config.kernel_vector
     dec = np.zeros((1, kern.D_LEN))
     for idx in kern.D_TIMES:
@@ -662,7 +665,7 @@ def _decide_run(config, probs, defl_deg, cmd_deg, llrs, dt=0.01, others_active=F
             p,
             1.0,  # isolation odds (tested with the bank)
             math.radians(d),
-            1e-4,
+            math.radians(defl_std_deg) ** 2,
             math.radians(c),
             a_s,
             a_c,
@@ -693,6 +696,25 @@ def test_detection_needs_likelihood_ratio_evidence_over_the_hold() -> None:
     # and the deflection gate: a surface at its command is not in fault, whatever the odds
     codes, _ = _decide_run(config, probs, [0.2] * n, cmd, [0.5] * n)
     assert codes == []
+
+
+def test_deflection_gate_in_posterior_standard_deviations() -> None:
+    """With ``min_deflection_error_std`` the estimate must be that many of its own posterior
+    standard deviations off the command (and at least ``min_deflection_error_deg``): 2 deg off
+    with a 1.9 deg posterior std is a detection with the fixed 1 deg gate alone, not with 1.5
+    std; 4 deg off is one with both."""
+    n = 100
+    probs, cmd, llrs = [0.95] * n, [0.0] * n, [1.0] * n
+    fixed = stmmae.parse_config({"min_deflection_error_std": 0.0})
+    scaled = stmmae.parse_config({})
+    assert scaled.min_deflection_error_std == 1.5
+    for config, off, detected in ((fixed, 2.0, True), (scaled, 2.0, False), (scaled, 4.0, True)):
+        codes, _ = _decide_run(config, probs, [off] * n, cmd, llrs, defl_std_deg=1.9)
+        assert (codes[:1] == [(config.hold_s, kern.EV_DETECTED)]) is detected, (config, off)
+    cfg = scaled.kernel_vector
+    # a tiny posterior std leaves the fixed gate in force
+    assert kern.deflection_gate(cfg, math.radians(0.1) ** 2) == pytest.approx(math.radians(1.0))
+    assert kern.deflection_gate(cfg, math.radians(2.0) ** 2) == pytest.approx(math.radians(3.0))
 
 
 def test_detection_while_another_fault_is_active_holds_longer() -> None:
