@@ -41,14 +41,7 @@ def load_config(drive: fs.Drive) -> dict[str, Any]:
     mission profile, or (random telegraph: no periodic law exists) the observed load."""
     p = drive.load_params
     if drive.load == "square":
-        return {
-            "kind": "square_wave",
-            "high_a": p["high_a"],
-            "low_a": p["low_a"],
-            "period_s": p["period_s"],
-            "duty": p["duty"],
-            "t0_s": p["phase_s"],
-        }
+        return fs.square_wave_law(drive)
     if drive.load == "mission":
         durations, currents = fs.mission_profile(p["scale"])
         return {

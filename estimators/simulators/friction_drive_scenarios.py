@@ -113,6 +113,20 @@ def switches(drive: Drive, duration_s: float) -> tuple[FloatArray, FloatArray]:
     return np.concatenate([[0.0], starts[keep]]), np.concatenate([[first], values[keep]])
 
 
+def square_wave_law(drive: Drive, high_scale: float = 1.0) -> dict[str, float | str]:
+    """A square-wave drive's own load law as the "square_wave" load assumption a user would
+    configure (``high_scale`` scales the high level, to assume a wrong law)."""
+    p = drive.load_params
+    return {
+        "kind": "square_wave",
+        "high_a": high_scale * p["high_a"],
+        "low_a": p["low_a"],
+        "period_s": p["period_s"],
+        "duty": p["duty"],
+        "t0_s": p["phase_s"],
+    }
+
+
 def mission_profile(scale: float) -> tuple[tuple[float, ...], tuple[float, ...]]:
     """The mission profile as (durations, currents) segments (what a user would configure as
     the "profile" load assumption from the recording)."""

@@ -169,14 +169,7 @@ def test_failed_once_the_threshold_is_crossed_and_statuses_served() -> None:
         "dn_alert": 0.2,
         "rul_every_s": 5.0,
         "rul_trajectories": 50,
-        "rul_load": {
-            "kind": "square_wave",
-            "high_a": drive.load_params["high_a"],
-            "low_a": drive.load_params["low_a"],
-            "period_s": drive.load_params["period_s"],
-            "duty": drive.load_params["duty"],
-            "t0_s": drive.load_params["phase_s"],
-        },
+        "rul_load": fs.square_wave_law(drive),
     }
     config = de.parse_config(raw)
     state, out = de.step(config, de.initial_state(config), Batch(t_s=t, channels=ch))
@@ -198,7 +191,6 @@ def test_model_error_widens_intervals_from_the_streams_own_record() -> None:
     drive = drive_of(505, m=0.01, failure_dn=0.5)
     data = fs.simulate_drive(drive, max_s=600.0)
     assert data is not None
-    p = drive.load_params
     raw = {
         "alpha0": drive.alpha0,
         "rul_failure_dn": 0.5,
@@ -206,14 +198,7 @@ def test_model_error_widens_intervals_from_the_streams_own_record() -> None:
         "dn_alert": 0.4,
         "rul_every_s": max(2.0, data.t_fail_s / 15.0),
         "rul_trajectories": 100,
-        "rul_load": {
-            "kind": "square_wave",
-            "high_a": 0.7 * p["high_a"],
-            "low_a": p["low_a"],
-            "period_s": p["period_s"],
-            "duty": p["duty"],
-            "t0_s": p["phase_s"],
-        },
+        "rul_load": fs.square_wave_law(drive, high_scale=0.7),
     }
     cover = {}
     errs = {}
@@ -472,14 +457,7 @@ def test_record_explains_the_wear_of_an_exact_model(seed: int) -> None:
         "dn_alert": 0.48,
         "rul_every_s": round(1.37 * p["period_s"], 3),
         "rul_trajectories": 50,
-        "rul_load": {
-            "kind": "square_wave",
-            "high_a": p["high_a"],
-            "low_a": p["low_a"],
-            "period_s": p["period_s"],
-            "duty": p["duty"],
-            "t0_s": p["phase_s"],
-        },
+        "rul_load": fs.square_wave_law(drive),
     }
     state, out = run(raw, data.t_s, data.channels)
     vec = state.vector
@@ -526,20 +504,12 @@ def test_version_5_state_loads_and_steps() -> None:
     n_before = float(state.vector[kern.ST_ERR_N])
     assert n_before > 0.0 and math.isfinite(state.vector[kern.ST_HIST_RATE])
     drive = fs.draw_drive(73_007, rate_hz=100.0, load="square", mismatch=False, skew=False)
-    p = drive.load_params
     config = de.parse_config(
         {
             "alpha0": drive.alpha0,
             "rul_every_s": 5.0,
             "rul_trajectories": 50,
-            "rul_load": {
-                "kind": "square_wave",
-                "high_a": p["high_a"],
-                "low_a": p["low_a"],
-                "period_s": p["period_s"],
-                "duty": p["duty"],
-                "t0_s": p["phase_s"],
-            },
+            "rul_load": fs.square_wave_law(drive),
         }
     )
     t, ch, _ = fs.telemetry(drive, 80.0)
