@@ -19,10 +19,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import os
 import time
 from collections import OrderedDict, deque
-from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -38,20 +36,17 @@ from app.db import Database
 from app.errors import STORAGE_FAULTS, DomainError, IdempotencyConflict, InvalidBatch, StaleBatch
 from app.events import service as events
 from app.events.service import LOGGED_TYPES
-from app.ingest import ParsedBatch, UnsupportedFrame
+from app.ingest import UnsupportedFrame
 from app.processing.processor import Processor
-from app.telemetry import service as telemetry
-from app.telemetry.service import Ack
-from app.telemetry.validation import DEFAULT_LIMITS, BatchLimits
+from app.telemetry.validation import BatchLimits
 from app.telemetry.writer import LogWriter
 from app.websocket import service
+from app.websocket.feed import FrameFeed, FrameSource, frame_feed
 from app.websocket.hub import (
     ALL_FLEET_TYPES,
     DEFAULT_FLEET_TYPES,
     Hub,
-    Inbox,
     Subscription,
-    inbox,
     public,
 )
 from app.websocket.watch import KeyGuard, ResultSweep, per_loop
@@ -191,21 +186,6 @@ class RateMeter:
         return round((len(self.times) - 1) / span, 3) if span > 0 else None
 
 
-_PARSE_POOL: Executor | None = None
-
-
-def _parse_pool() -> Executor:
-    """The threads that parse streamed frames, shared by every connection of the process (made
-    on first use; idle threads cost nothing): a hand-over cheaper than the generic thread
-    pool's (no capacity limiter, no checkpoint), answered through the loop's
-    :class:`~app.websocket.hub.Inbox` (one wake-up per burst)."""
-    global _PARSE_POOL
-    if _PARSE_POOL is None:
-        _PARSE_POOL = ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1),
-                                         thread_name_prefix="fleethealth-ws-parse")
-    return _PARSE_POOL
-
-
 def _frame_budget(ws: WebSocket, settings: Settings) -> FrameBudget:
     budget: FrameBudget | None = getattr(ws.app.state, "ws_frame_budget", None)
     if budget is None:
@@ -227,9 +207,8 @@ class _StreamConn:
     channels: list[str]
     with_samples: bool
     sub: Subscription
-    writer: LogWriter
-    parse_pool: Executor
-    box: Inbox
+    feed: FrameFeed
+    source: FrameSource
     lock: asyncio.Lock = field(default_factory=asyncio.Lock)
     inflight: OrderedDict[int, int | None] = field(default_factory=OrderedDict)  # seq -> client_seq
     ready: dict[int, dict[str, Any]] = field(default_factory=dict)  # seq -> result message
@@ -244,7 +223,6 @@ class _StreamConn:
     paused: bool = False  # slow_down sent, resume not yet
     results_rate: RateMeter = field(default_factory=lambda: RateMeter())
     sent_seq: int = 0  # the last result sent (older pushes are stale)
-    limits: BatchLimits = DEFAULT_LIMITS
 
     # ------------------------------------------------------------------ results
     def _take_pushed(self) -> None:
@@ -421,8 +399,9 @@ class _StreamConn:
     async def _take_frame(self, data: str | bytes) -> bool:
         """Log one frame and acknowledge it; False when it was refused (connection closed)."""
         try:
-            # Acknowledged once committed (durable), by the log writer's group commit.
-            client_seq, ack = await self.box.wrap(_parse_then_append(self, data))
+            # Parsed in a parse thread, handed from there to the log writer; acknowledged once
+            # committed (durable), by the writer's group commit.
+            client_seq, ack = await self.feed.put(self.source, data)
         except UnsupportedFrame as exc:
             WS_FRAMES.labels("unsupported").inc()
             await _refuse(self.ws, CLOSE_UNSUPPORTED, exc.name, exc.detail)
@@ -469,37 +448,6 @@ class _StreamConn:
         return True
 
 
-def _parse_then_append(conn: _StreamConn, data: str | bytes) -> Future[tuple[int, Ack]]:
-    """Parse a frame in a parse thread, hand it from there to the log writer, and resolve with
-    (client_seq, its acknowledgement) once committed or with the error that refused it: one
-    hand-over back to the event loop per frame, not one after the parse and one after the
-    commit. In a parse thread even when small: the decoders release and re-take the GIL, and in
-    the event loop each re-take waits behind the busy writer and processor threads (measured:
-    parsed in the loop, 20 % more server CPU per frame). Frames of one connection are handed
-    over one at a time (the next once this one is acknowledged), so they reach the log in
-    order."""
-    out: Future[tuple[int, Ack]] = Future()
-
-    def parsed(done: Future[tuple[int, ParsedBatch]]) -> None:  # in the parse thread
-        try:
-            client_seq, batch = done.result()
-        except BaseException as exc:
-            out.set_exception(exc)
-            return
-
-        def appended(ack: Future[Ack]) -> None:  # in the log writer's thread
-            try:
-                out.set_result((client_seq, ack.result()))
-            except BaseException as exc:
-                out.set_exception(exc)
-
-        conn.writer.submit(conn.actuator_pk, batch).add_done_callback(appended)
-
-    args = (data, conn.channels, conn.settings.max_batch_samples, conn.limits)
-    conn.parse_pool.submit(telemetry.prepare_frame, *args).add_done_callback(parsed)
-    return out
-
-
 @router.websocket("/aircraft/{tail}/actuators/{actuator_id}/stream")
 async def stream(ws: WebSocket, tail: str, actuator_id: str) -> None:
     """Live ingest: frames in, ``logged`` and ``result`` messages out (docs/api.md)."""
@@ -517,6 +465,7 @@ async def stream(ws: WebSocket, tail: str, actuator_id: str) -> None:
         await _refuse(ws, CLOSE_POLICY, exc.name, exc.detail)
         return
     pk = start.actuator_pk
+    writer: LogWriter = ws.app.state.log_writer
     sub = hub.subscribe_stream(pk, maxsize=4 * settings.ws_max_inflight)
     conn = _StreamConn(
         ws=ws,
@@ -529,10 +478,9 @@ async def stream(ws: WebSocket, tail: str, actuator_id: str) -> None:
         sub=sub,
         budget=_frame_budget(ws, settings),
         sent_seq=start.last_applied_seq,
-        writer=ws.app.state.log_writer,
-        parse_pool=_parse_pool(),
-        box=inbox(asyncio.get_running_loop()),
-        limits=BatchLimits.from_settings(settings),
+        feed=frame_feed(asyncio.get_running_loop()),
+        source=FrameSource(pk, start.channels, settings.max_batch_samples, BatchLimits.from_settings(settings),
+                           writer.submit),
     )
     # Frames logged before a dropped connection and not applied yet: their results come here.
     for seq, client_seq in start.pending:

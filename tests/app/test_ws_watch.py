@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import orjson
@@ -18,13 +19,15 @@ from starlette.websockets import WebSocketDisconnect
 from app.auth.service import Principal, authenticate, create_key, revoke_key
 from app.db import Database
 from app.errors import DomainError, InvalidBatch, Unauthorized
+from app.ingest import frame_batch_id
 from app.main import create_app
 from app.models import Actuator
+from app.telemetry.service import prepare_frame
 from app.telemetry.validation import DEFAULT_LIMITS
 from app.telemetry.writer import LogWriter
-from app.websocket import router as ws_router
 from app.websocket import service
-from app.websocket.hub import Hub, Subscription
+from app.websocket.feed import FrameFeed, FrameSource
+from app.websocket.hub import Hub, Subscription, inbox
 from app.websocket.watch import KeyGuard, ResultSweep
 from estimators import fakf
 from tests.app.conftest import Api, make_settings
@@ -172,34 +175,63 @@ def test_a_stream_connection_hears_its_stream_fail_without_polling(api_failing: 
     assert closed.value.code == 1011
 
 
-def test_a_frame_is_parsed_and_appended_with_one_hand_over(db_url: str, api: Api) -> None:
-    """The parse thread hands a good frame to the log writer; a bad one is refused with its
-    error and nothing reaches the writer."""
+class _CountingPool(ThreadPoolExecutor):
+    """A parse pool that counts its jobs."""
+
+    def __init__(self) -> None:
+        super().__init__(max_workers=2)
+        self.jobs = 0
+
+    def submit(self, fn: Any, /, *args: Any, **kwargs: Any) -> Any:
+        self.jobs += 1
+        return super().submit(fn, *args, **kwargs)
+
+
+def test_frames_of_one_loop_pass_go_to_the_parse_pool_together(db_url: str, api: Api) -> None:
+    """Frames put by several connections in one pass of the loop cost one job of the parse pool
+    per burst (not one per frame); each is handed to the log writer and answered with its own
+    acknowledgement, in order; a bad one is refused with its own error and never reaches the
+    writer, without spoiling the others of its burst."""
     api.setup_actuator()
-    pk = _actuator_pk(db_url)
+    api.setup_actuator(act="ema2")
+    pk, pk2 = _actuator_pk(db_url), _actuator_pk(db_url, "ema2")
     db = Database(db_url)
     writer = LogWriter(db)
     writer.start()
-    submitted: list[int] = []
+    submitted: list[tuple[int, str]] = []
     real_submit = writer.submit
 
     def submit(actuator_pk: int, batch: Any) -> Any:
-        submitted.append(actuator_pk)
+        submitted.append((actuator_pk, batch.batch_id))
         return real_submit(actuator_pk, batch)
 
-    writer.submit = submit  # type: ignore[method-assign]
-    conn = ws_router._StreamConn.__new__(ws_router._StreamConn)
-    conn.actuator_pk, conn.channels, conn.writer = pk, ["current", "voltage"], writer
-    conn.settings, conn.limits = api.app.state.settings, DEFAULT_LIMITS
-    conn.parse_pool = ws_router._parse_pool()
+    pool = _CountingPool()
+    chans = ["current", "voltage"]
+    settings = api.app.state.settings
+    bad = {**FRAME, "client_seq": True}
+
+    async def run() -> list[Any]:
+        loop = asyncio.get_running_loop()
+        feed = FrameFeed(loop, pool, inbox(loop), prepare_frame, burst=4)
+        one = FrameSource(pk, chans, settings.max_batch_samples, DEFAULT_LIMITS, submit)
+        two = FrameSource(pk2, chans, settings.max_batch_samples, DEFAULT_LIMITS, submit)
+        outs = [feed.put(one, orjson.dumps(FRAME).decode()),
+                feed.put(two, orjson.dumps(FRAME).decode()),
+                feed.put(two, orjson.dumps(bad).decode()),
+                feed.put(two, orjson.dumps({**FRAME, "client_seq": 2, "t": [1.0, 1.001]}).decode()),
+                feed.put(one, orjson.dumps({**FRAME, "client_seq": 2, "t": [1.0, 1.001]}).decode())]
+        return await asyncio.gather(*outs, return_exceptions=True)
+
     try:
-        client_seq, ack = ws_router._parse_then_append(conn, orjson.dumps(FRAME).decode()).result(60)
-        assert client_seq == 1 and ack.seq == 1 and not ack.replayed and submitted == [pk]
-        bad = {**FRAME, "client_seq": True}
-        with pytest.raises(InvalidBatch, match="client_seq"):
-            ws_router._parse_then_append(conn, orjson.dumps(bad).decode()).result(60)
-        assert submitted == [pk]  # refused by the parse: nothing handed to the writer
-        assert api.health()["last_logged_seq"] == 1
+        got = asyncio.run(run())
+        assert pool.jobs == 2  # five frames, bursts of four
+        assert [(c, a.seq) for c, a in (got[0], got[1], got[3], got[4])] == [(1, 1), (1, 1), (2, 2), (2, 2)]
+        assert isinstance(got[2], InvalidBatch) and "client_seq" in str(got[2])
+        assert [b for _, b in submitted] == [frame_batch_id(1), frame_batch_id(1), frame_batch_id(2),
+                                               frame_batch_id(2)]
+        assert [p for p, _ in submitted] == [pk, pk2, pk2, pk]
+        assert api.health()["last_logged_seq"] == 2 and api.health(act="ema2")["last_logged_seq"] == 2
     finally:
+        pool.shutdown()
         writer.stop()
         db.dispose()
