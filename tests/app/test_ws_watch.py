@@ -191,10 +191,13 @@ def test_frames_of_one_loop_pass_go_to_the_parse_pool_together(db_url: str, api:
     """Frames put by several connections in one pass of the loop cost one job of the parse pool
     per burst (not one per frame); each is handed to the log writer and answered with its own
     acknowledgement, in order; a bad one is refused with its own error and never reaches the
-    writer, without spoiling the others of its burst."""
+    writer, without spoiling the others of its burst. (A connection puts its next frame only
+    after this one's acknowledgement, so only the frames within one job have an order: the two
+    jobs may run at once.)"""
     api.setup_actuator()
     api.setup_actuator(act="ema2")
-    pk, pk2 = _actuator_pk(db_url), _actuator_pk(db_url, "ema2")
+    api.setup_actuator(act="ema3")
+    pk, pk2, pk3 = _actuator_pk(db_url), _actuator_pk(db_url, "ema2"), _actuator_pk(db_url, "ema3")
     db = Database(db_url)
     writer = LogWriter(db)
     writer.start()
@@ -215,22 +218,24 @@ def test_frames_of_one_loop_pass_go_to_the_parse_pool_together(db_url: str, api:
         feed = FrameFeed(loop, pool, inbox(loop), prepare_frame, burst=4)
         one = FrameSource(pk, chans, settings.max_batch_samples, DEFAULT_LIMITS, submit)
         two = FrameSource(pk2, chans, settings.max_batch_samples, DEFAULT_LIMITS, submit)
+        three = FrameSource(pk3, chans, settings.max_batch_samples, DEFAULT_LIMITS, submit)
         outs = [feed.put(one, orjson.dumps(FRAME).decode()),
                 feed.put(two, orjson.dumps(FRAME).decode()),
                 feed.put(two, orjson.dumps(bad).decode()),
                 feed.put(two, orjson.dumps({**FRAME, "client_seq": 2, "t": [1.0, 1.001]}).decode()),
-                feed.put(one, orjson.dumps({**FRAME, "client_seq": 2, "t": [1.0, 1.001]}).decode())]
+                feed.put(three, orjson.dumps(FRAME).decode())]
         return await asyncio.gather(*outs, return_exceptions=True)
 
     try:
         got = asyncio.run(run())
         assert pool.jobs == 2  # five frames, bursts of four
-        assert [(c, a.seq) for c, a in (got[0], got[1], got[3], got[4])] == [(1, 1), (1, 1), (2, 2), (2, 2)]
+        assert [(c, a.seq) for c, a in (got[0], got[1], got[3], got[4])] == [(1, 1), (1, 1), (2, 2), (1, 1)]
         assert isinstance(got[2], InvalidBatch) and "client_seq" in str(got[2])
-        assert [b for _, b in submitted] == [frame_batch_id(1), frame_batch_id(1), frame_batch_id(2),
-                                               frame_batch_id(2)]
-        assert [p for p, _ in submitted] == [pk, pk2, pk2, pk]
-        assert api.health()["last_logged_seq"] == 2 and api.health(act="ema2")["last_logged_seq"] == 2
+        first_job = [(p, b) for p, b in submitted if p != pk3]
+        assert first_job == [(pk, frame_batch_id(1)), (pk2, frame_batch_id(1)), (pk2, frame_batch_id(2))]
+        assert [(p, b) for p, b in submitted if p == pk3] == [(pk3, frame_batch_id(1))]
+        assert api.health()["last_logged_seq"] == 1 and api.health(act="ema2")["last_logged_seq"] == 2
+        assert api.health(act="ema3")["last_logged_seq"] == 1
     finally:
         pool.shutdown()
         writer.stop()
