@@ -2,7 +2,8 @@
 model, and the time of a 1,000-trajectory RUL prognosis under several regimes.
 
 Prints figures measured side by side in one run; asserts nothing.
-Run: ``.venv/bin/python bench/bench_deterioration_ekf.py``. ``--baseline DIR`` instead times the
+Run: ``.venv/bin/python bench/bench_deterioration_ekf.py``. ``--parts CHUNK`` times the kernel
+with each adaptive part of the defaults off in turn. ``--baseline DIR`` instead times the
 RUL cases and the default EKF of this tree and of another source tree (e.g. an extract of
 ``main``) in alternating child processes, and prints both side by side with their ratio.
 """
@@ -256,6 +257,49 @@ def ekf_default_timings(n: int = 300_000) -> dict[str, tuple[float, float | None
     }  # fmt: skip
 
 
+#: One adaptive part of the defaults off at a time (the seed's filter: all of them off).
+PARTS: dict[str, dict[str, Any]] = {
+    "defaults": {},
+    "interval input (no edge model)": {"input_model": "interval"},
+    "held input": {"input_model": "hold"},
+    "no noise estimation": {"noise_adaptation": False},
+    "no gating": {"gate_sigma": None},
+    "no projection": {"nonnegative": False},
+    "no band scaling": {"covariance_scaling": False},
+    "no plant calibration": {"plant_calibration": False},
+    "no random walk of m": {"m_walk_rel": 0.0},
+    "seed's filter": SEED,
+}
+
+
+def ekf_part_timings(n: int = 300_000, chunk: int = 300_000, rounds: int = 5) -> None:
+    """Kernel CPU time per sample with each adaptive part of the defaults off, on ``n`` samples
+    in batches of ``chunk``; the configurations alternate, best of ``2 rounds`` calls each."""
+    t, ch, _ = simulate_friction_drive(n / 1000.0, 1000.0, m=0.0005, seed=1)
+    runs: dict[str, Callable[[], None]] = {}
+    for label, extra in PARTS.items():
+        config = de.parse_config({"alpha0": 10.0, "rul_every_s": None, **extra})
+        vec0 = de.initial_state(config).vector
+
+        def run(kv: np.ndarray = config.kernel_vector, vec0: np.ndarray = vec0) -> None:
+            st = vec0.copy()
+            for i in range(0, n, chunk):
+                s = slice(i, i + chunk)
+                kern.ekf_batch(
+                    kv, st, t[s], ch["current"][s], ch["motor_speed"][s], ch["wheel_speed"][s]
+                )
+
+        runs[label] = run
+    best = dict.fromkeys(runs, float("inf"))
+    for _ in range(rounds):
+        for label, fn in runs.items():
+            best[label] = min(best[label], cpu_best_of(fn, 2))
+    print(f"kernel, {n} samples in batches of {chunk}, thread CPU, best of {2 * rounds}")
+    for label, secs in best.items():
+        saved = (best["defaults"] - secs) / n * 1e9
+        print(f"{label:<32} {secs / n * 1e9:7.1f} ns/sample  (defaults minus this {saved:6.1f})")
+
+
 _TREE_TIMING = """
 import importlib.util, json, sys
 spec = importlib.util.spec_from_file_location("bench_dekf", sys.argv[1])
@@ -307,7 +351,15 @@ def main() -> None:
         help="another source tree: time the RUL cases and the default EKF of both, side by side",
     )  # fmt: skip
     ap.add_argument("--rounds", type=int, default=3, help="alternating runs per tree (--baseline)")
+    ap.add_argument(
+        "--parts", type=int, default=None, metavar="CHUNK",
+        help="kernel time with each adaptive part off, batches of CHUNK samples",
+    )  # fmt: skip
     args = ap.parse_args()
+    if args.parts is not None:
+        de.warm_up()
+        ekf_part_timings(chunk=args.parts)
+        return
     if args.baseline is not None:
         side_by_side(args.baseline.resolve(), args.rounds)
         return

@@ -675,32 +675,30 @@ def ekf_batch(
         batch are not strictly increasing (the state is then left untouched).
     """
     n = t.shape[0]
-    outs: list[FloatArray] = []
+    out = np.empty((OUT_LEN, n))
     wins: list[FloatArray] = []
     evs: list[FloatArray] = []
     snaps: list[FloatArray] = []
     start = 0
     while True:
-        out = np.empty((OUT_LEN, n - start))
-        windows, events, snap, done = _ekf_kernel(
-            cfg, st, t[start:], current[start:], w1_meas[start:], w2_meas[start:], out
+        windows, events, snap, stop = _ekf_kernel(
+            cfg, st, t, current, w1_meas, w2_meas, out, start
         )
-        if done < 0:
+        if stop < 0:
             return np.full((OUT_LEN, n), np.nan), windows, events, snap, -1
-        outs.append(out[:, : n - start if done == 0 else done])
         wins.append(windows)
         evs.append(events)
         snaps.append(snap)
-        if done == 0:
+        if stop == 0:
             break
-        start += done
+        start = stop
         if calibrate is not None:
             cfg = calibrate(st, cfg, float(t[start - 1]))
         if start >= n:
             break
-    if len(outs) == 1:
-        return outs[0], wins[0], evs[0], snaps[0], 0
-    return np.hstack(outs), np.vstack(wins), np.vstack(evs), np.vstack(snaps), 0
+    if len(wins) == 1:
+        return out, wins[0], evs[0], snaps[0], 0
+    return out, np.vstack(wins), np.vstack(evs), np.vstack(snaps), 0
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=FMA)
@@ -712,25 +710,28 @@ def _ekf_kernel(
     w1_meas: FloatArray,
     w2_meas: FloatArray,
     out: FloatArray,
+    start: int,
 ) -> tuple[FloatArray, FloatArray, FloatArray, int]:
-    """The compiled loop of :func:`ekf_batch`."""
+    """The compiled loop of :func:`ekf_batch` over samples ``start ..`` of the batch, writing
+    their columns of ``out``; returns the index after the sample it stopped at (the end of the
+    plant-calibration segment), 0 when it ran to the end, -1 on times out of order."""
     n = t.shape[0]
     bins = int(cfg[CFG_OBS_BINS])
-    for k in range(1, n):
+    for k in range(start + 1, n):
         if not t[k] > t[k - 1]:
             out[:] = np.nan
             return np.empty((0, WIN_LEN)), np.empty((0, EV_LEN)), np.empty((0, 1)), -1
     stop = 0
     hw = cfg[CFG_HEALTH_WINDOW]
-    windows = np.empty((int(n // hw) + 1, WIN_LEN))
+    windows = np.empty((int((n - start) // hw) + 1, WIN_LEN))
     events = np.empty((4, EV_LEN))
     every = cfg[CFG_RUL_EVERY]
     dt_nominal = cfg[CFG_DT_NOMINAL]
     n_snap_max = 0
-    if math.isfinite(every) and n > 0:
+    if math.isfinite(every) and n > start:
         t_next0 = st[ST_T_NEXT_RUL]
         if not math.isfinite(t_next0):
-            t_next0 = t[0] + every
+            t_next0 = t[start] + every
         n_snap_max = int(max(0.0, (t[n - 1] - t_next0) / every)) + 2
     snaps = np.empty((n_snap_max, RS_BASE_LEN + 2 * bins))
     n_win = 0
@@ -869,7 +870,7 @@ def _ekf_kernel(
     c1_lag = st[ST_W_CH + CH_LEN + CH_LAG]
     c1_nlag = st[ST_W_CH + CH_LEN + CH_N_LAG]
 
-    for k in range(n):
+    for k in range(start, n):
         tk = t[k]
         y0 = w1_meas[k]
         y1 = w2_meas[k]
@@ -1476,7 +1477,7 @@ def _ekf_kernel(
     st[ST_INIT] = 1.0 if init else 0.0
     st[ST_T_LAST] = t_last
     st[ST_U_HELD] = u_held
-    st[ST_N_SEEN] += stop if stop > 0 else n
+    st[ST_N_SEEN] += (stop if stop > 0 else n) - start
     st[ST_X] = x0
     st[ST_X + 1] = x1
     st[ST_X + 2] = x2
