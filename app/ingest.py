@@ -538,24 +538,31 @@ class _Flat:
         return pos + self.scalar("I", pos)
 
 
-def _record_batch_header(metadata: bytes) -> tuple[int, int, list[tuple[int, int]], bool]:
+#: Record batch headers remembered: the frames of a stream share their shape, so the same
+#: metadata bytes come again frame after frame (the client_seq is in the schema message).
+HEADER_CACHE_SIZE = 1024
+
+
+@functools.lru_cache(maxsize=HEADER_CACHE_SIZE)
+def _record_batch_header(metadata: bytes) -> tuple[int, int, tuple[tuple[int, int], ...], bool]:
     """``(header type, declared rows, buffers (offset, length), compressed)`` of a message.
 
     For a message that is not a record batch (schema, dictionary), only its header type is read.
+    A pure function of the bytes, remembered (a malformed header raises, and is not).
     """
     fb = _Flat(metadata)
     message = fb.deref(0)
     type_pos = fb.field(message, 1)
     header_type = fb.scalar("B", type_pos) if type_pos is not None else 0
     if header_type != _HEADER_RECORD_BATCH:
-        return (header_type, 0, [], False)
+        return (header_type, 0, (), False)
     header_pos = fb.field(message, 2)
     if header_pos is None:
         raise ValueError("record batch message without header")
     batch = fb.deref(header_pos)
     length_pos = fb.field(batch, 0)
     rows = fb.scalar("q", length_pos) if length_pos is not None else 0
-    buffers: list[tuple[int, int]] = []
+    buffers: tuple[tuple[int, int], ...] = ()
     buffers_pos = fb.field(batch, 2)
     if buffers_pos is not None:
         vec = fb.deref(buffers_pos)
@@ -565,12 +572,12 @@ def _record_batch_header(metadata: bytes) -> tuple[int, int, list[tuple[int, int
         if n:
             # The whole vector at once: (offset, length) pairs of int64.
             flat = fb.scalars("q", vec + 4, 2 * n)
-            buffers = list(zip(flat[0::2], flat[1::2], strict=True))
+            buffers = tuple(zip(flat[0::2], flat[1::2], strict=True))
     compressed = fb.field(batch, 3) is not None
     return (header_type, rows, buffers, compressed)
 
 
-def _decoded_bytes(body: pa.Buffer | None, buffers: list[tuple[int, int]], compressed: bool) -> int:
+def _decoded_bytes(body: pa.Buffer | None, buffers: Sequence[tuple[int, int]], compressed: bool) -> int:
     """Bytes a record batch's buffers take once decoded.
 
     A compressed buffer starts with its uncompressed length (int64, -1 when stored as is), the

@@ -107,3 +107,20 @@ def test_bounds_of_values(values: list[float], expected: tuple[float, float]) ->
 def test_bounds_with_a_leading_nan_fail_every_comparison() -> None:
     lo, hi = _bounds([math.nan, 1e30, -1e30])
     assert not (lo >= -1.0) and not (hi <= 1.0)
+
+
+def test_a_record_batch_header_is_read_once_per_shape_and_a_bad_one_always_refused() -> None:
+    from app.ingest import _record_batch_header
+
+    t = 1000.0 + np.arange(SMALL) / 100.0
+    reader = pa.ipc.MessageReader.open_stream(pa.py_buffer(_arrow(t, t, t)))
+    reader.read_next_message()  # the schema
+    metadata = reader.read_next_message().metadata.to_pybytes()
+    first = _record_batch_header(metadata)
+    hits = _record_batch_header.cache_info().hits
+    assert _record_batch_header(bytes(bytearray(metadata))) == first  # equal bytes, another object
+    assert _record_batch_header.cache_info().hits == hits + 1
+    assert first[:2] == (3, SMALL) and len(first[2]) == 6 and not first[3]
+    for _ in range(2):
+        with pytest.raises(ValueError, match="out of range"):
+            _record_batch_header(metadata[:12])
