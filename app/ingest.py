@@ -318,7 +318,6 @@ def parse_frame(
             raise InvalidBatch("the Arrow schema metadata must hold client_seq") from None
         except ValueError as exc:
             raise InvalidBatch(f"bad Arrow schema metadata: {exc}") from None
-        table = table.replace_schema_metadata(None)
         batch_id, t_s, columns = _parse_table(table, TimeParams(frame_batch_id(seq), t0, rate), frame=True)
     return seq, _validate(batch_id, t_s, columns, expected_channels, max_samples, end_of_run)
 
@@ -354,12 +353,16 @@ def _to_float_array(values: Any, name: str) -> np.ndarray:
     return _arrow_to_float(arr, name)
 
 
+_FLOAT64_ID = pa.float64().id
+
+
 def _arrow_to_float(arr: pa.Array | pa.ChunkedArray, name: str) -> np.ndarray:
-    if pa.types.is_null(arr.type):
-        return np.full(len(arr), np.nan)
-    if not (pa.types.is_floating(arr.type) or pa.types.is_integer(arr.type)):
-        raise InvalidBatch(f"column {name!r} has type {arr.type}; numbers are needed")
-    if arr.type != pa.float64():
+    kind = arr.type
+    if kind.id != _FLOAT64_ID:  # float64, the usual column, is taken as it is
+        if pa.types.is_null(kind):
+            return np.full(len(arr), np.nan)
+        if not (pa.types.is_floating(kind) or pa.types.is_integer(kind)):
+            raise InvalidBatch(f"column {name!r} has type {kind}; numbers are needed")
         arr = arr.cast(pa.float64())
     if isinstance(arr, pa.ChunkedArray):
         # One chunk is used as it is (combine_chunks would copy it); several are joined.
@@ -514,6 +517,13 @@ class _Flat:
         value: int = form.unpack_from(self.buf, pos)[0]
         return value
 
+    def scalars(self, fmt: str, pos: int, count: int) -> tuple[int, ...]:
+        """``count`` consecutive scalars of ``fmt`` from ``pos``."""
+        form = self._FORMATS[fmt]
+        if pos < 0 or pos + count * form.size > self.size:
+            raise ValueError("flatbuffer offset out of range")
+        return struct.unpack_from(f"<{count}{fmt}", self.buf, pos)
+
     def field(self, table: int, index: int) -> int | None:
         """Absolute position of a table's field, None when absent."""
         vtable = table - self.scalar("i", table)
@@ -528,37 +538,46 @@ class _Flat:
         return pos + self.scalar("I", pos)
 
 
-def _record_batch_header(metadata: bytes) -> tuple[int, int, list[tuple[int, int]], bool]:
+#: Record batch headers remembered: the frames of a stream share their shape, so the same
+#: metadata bytes come again frame after frame (the client_seq is in the schema message).
+HEADER_CACHE_SIZE = 1024
+
+
+@functools.lru_cache(maxsize=HEADER_CACHE_SIZE)
+def _record_batch_header(metadata: bytes) -> tuple[int, int, tuple[tuple[int, int], ...], bool]:
     """``(header type, declared rows, buffers (offset, length), compressed)`` of a message.
 
     For a message that is not a record batch (schema, dictionary), only its header type is read.
+    A pure function of the bytes, remembered (a malformed header raises, and is not).
     """
     fb = _Flat(metadata)
     message = fb.deref(0)
     type_pos = fb.field(message, 1)
     header_type = fb.scalar("B", type_pos) if type_pos is not None else 0
     if header_type != _HEADER_RECORD_BATCH:
-        return (header_type, 0, [], False)
+        return (header_type, 0, (), False)
     header_pos = fb.field(message, 2)
     if header_pos is None:
         raise ValueError("record batch message without header")
     batch = fb.deref(header_pos)
     length_pos = fb.field(batch, 0)
     rows = fb.scalar("q", length_pos) if length_pos is not None else 0
-    buffers: list[tuple[int, int]] = []
+    buffers: tuple[tuple[int, int], ...] = ()
     buffers_pos = fb.field(batch, 2)
     if buffers_pos is not None:
         vec = fb.deref(buffers_pos)
         n = fb.scalar("I", vec)
         if 4 + 16 * n > len(metadata):
             raise ValueError("buffer vector out of range")
-        for i in range(n):
-            buffers.append((fb.scalar("q", vec + 4 + 16 * i), fb.scalar("q", vec + 12 + 16 * i)))
+        if n:
+            # The whole vector at once: (offset, length) pairs of int64.
+            flat = fb.scalars("q", vec + 4, 2 * n)
+            buffers = tuple(zip(flat[0::2], flat[1::2], strict=True))
     compressed = fb.field(batch, 3) is not None
     return (header_type, rows, buffers, compressed)
 
 
-def _decoded_bytes(body: pa.Buffer | None, buffers: list[tuple[int, int]], compressed: bool) -> int:
+def _decoded_bytes(body: pa.Buffer | None, buffers: Sequence[tuple[int, int]], compressed: bool) -> int:
     """Bytes a record batch's buffers take once decoded.
 
     A compressed buffer starts with its uncompressed length (int64, -1 when stored as is), the
@@ -585,7 +604,7 @@ def _decoded_bytes(body: pa.Buffer | None, buffers: list[tuple[int, int]], compr
     return total
 
 
-def _read_arrow(body: BodyBytes, limits: DecodeLimits) -> pa.Table:
+def _read_arrow(body: BodyBytes, limits: DecodeLimits) -> pa.Table | pa.RecordBatch:
     """Read an Arrow IPC stream record batch by record batch, bounded before each is decoded.
 
     Each message's metadata is read first: a record batch whose declared rows take the total
@@ -632,13 +651,15 @@ def _read_arrow(body: BodyBytes, limits: DecodeLimits) -> pa.Table:
             batch = pa.ipc.read_record_batch(message, schema)
             batch.validate()  # buffer sizes consistent with the declared length (cheap, no scan)
             batches.append(batch)
-        return pa.Table.from_batches(batches, schema=schema)
+        # One record batch (a frame, a small body) is used as it is: a table of it is the same
+        # columns behind one more layer of objects.
+        return batches[0] if len(batches) == 1 else pa.Table.from_batches(batches, schema=schema)
     except (pa.ArrowInvalid, pa.ArrowTypeError, OSError, ValueError, StopIteration) as exc:
         raise InvalidBatch(f"body is not an Arrow IPC stream: {exc}") from None
 
 
 def _parse_table(
-    table: pa.Table, params: TimeParams, *, frame: bool = False
+    table: pa.Table | pa.RecordBatch, params: TimeParams, *, frame: bool = False
 ) -> tuple[str, np.ndarray | None, dict[str, np.ndarray]]:
     batch_id = _batch_id(params.batch_id, frame=frame)
     names = table.column_names
@@ -656,6 +677,21 @@ def _parse_table(
     return batch_id, t_s, columns
 
 
+def _finite_increasing(values: list[float]) -> bool:
+    """Whether non-empty ``values`` are finite and strictly increasing (False for a NaN
+    anywhere: it compares False). Each lies between the first and the last, so finite ends
+    are enough."""
+    return (-math.inf < values[0] and values[-1] < math.inf
+            and all(a < b for a, b in zip(values, values[1:], strict=False)))
+
+
+def _all_finite(values: list[float]) -> bool:
+    """Whether every value is finite (no NaN, no infinity): their sum is then finite, or it
+    overflows (False, as for a NaN or an infinity: a quick test, not the check)."""
+    total = sum(values)
+    return total - total == 0.0
+
+
 def _validate(
     batch_id: str,
     t_s: np.ndarray | None,
@@ -665,14 +701,15 @@ def _validate(
     end_of_run: bool = False,
 ) -> ParsedBatch:
     assert t_s is not None
-    unknown = sorted(set(columns) - set(expected))
-    missing = [c for c in expected if c not in columns]
-    if unknown:
-        raise InvalidBatch(f"unknown channels: {', '.join(unknown)} (this actuator has: "
-                           f"{', '.join(expected)})")
-    if missing:
-        raise InvalidBatch(f"missing channels: {', '.join(missing)} (send NaN/null for samples "
-                           "the sensor did not give)")
+    if len(columns) != len(expected) or columns.keys() != set(expected):
+        unknown = sorted(set(columns) - set(expected))
+        missing = [c for c in expected if c not in columns]
+        if unknown:
+            raise InvalidBatch(f"unknown channels: {', '.join(unknown)} (this actuator has: "
+                               f"{', '.join(expected)})")
+        if missing:
+            raise InvalidBatch(f"missing channels: {', '.join(missing)} (send NaN/null for samples "
+                               "the sensor did not give)")
     n = t_s.shape[0]
     for name, col in columns.items():
         if col.shape[0] != n:
@@ -681,20 +718,25 @@ def _validate(
         raise InvalidBatch("empty batch: no samples")
     if n > max_samples:
         raise _too_many_samples(n, max_samples)
-    if not np.all(np.isfinite(t_s)):
-        k = int(np.argmin(np.isfinite(t_s)))
-        raise InvalidBatch(f"t[{k}] is not a finite number")
-    if n > 1:
-        d = np.diff(t_s)
-        if not np.all(d > 0):
-            k = int(np.argmin(d > 0))
-            raise InvalidBatch(f"timestamps must increase strictly: t[{k + 1}]={t_s[k + 1]!r} "
-                               f"follows t[{k}]={t_s[k]!r}")
-    for name, col in columns.items():
-        bad = np.isinf(col)
-        if bad.any():
-            k = int(np.argmax(bad))
-            raise InvalidBatch(f"channel {name!r} holds an infinite value at index {k}")
+    small = n <= SMALL_LIST_MAX
+    # A small batch is first tested in plain Python (a few numpy calls on tiny arrays cost more
+    # than the whole test); only one that may fail goes through the checks that name the fault.
+    if not (small and _finite_increasing(t_s.tolist())):
+        if not np.all(np.isfinite(t_s)):
+            k = int(np.argmin(np.isfinite(t_s)))
+            raise InvalidBatch(f"t[{k}] is not a finite number")
+        if n > 1:
+            d = np.diff(t_s)
+            if not np.all(d > 0):
+                k = int(np.argmin(d > 0))
+                raise InvalidBatch(f"timestamps must increase strictly: t[{k + 1}]={t_s[k + 1]!r} "
+                                   f"follows t[{k}]={t_s[k]!r}")
+    if not (small and all(_all_finite(col.tolist()) for col in columns.values())):
+        for name, col in columns.items():
+            bad = np.isinf(col)
+            if bad.any():
+                k = int(np.argmax(bad))
+                raise InvalidBatch(f"channel {name!r} holds an infinite value at index {k}")
     ordered = {c: np.ascontiguousarray(columns[c], dtype=np.float64) for c in expected}
     return ParsedBatch(
         batch_id=batch_id,
