@@ -6,7 +6,10 @@ from pathlib import Path
 
 import pytest
 
+from estimators import deterioration_ekf as de
 from estimators.flea import flea_dir
+
+DATA = Path(__file__).parent / "data"
 
 
 @pytest.fixture(scope="session")
@@ -18,3 +21,13 @@ def flea_path() -> Path:
             f"FLEA data not found at {path} (set FLEETHEALTH_FLEA_DIR to the folder with index.csv)"
         )
     return path
+
+
+def upgraded_dekf_state(version: int) -> de.DekfState:
+    """The deterioration EKF state dumped by its version-``version`` code (a file in ``data``),
+    loaded, and so upgraded to the current version."""
+    blob = (DATA / f"deterioration_ekf_state_v{version}.bin").read_bytes()
+    assert f'"version":{version}'.encode() in blob
+    state = de.load_state(blob)
+    assert state.version == de.STATE_VERSION
+    return state

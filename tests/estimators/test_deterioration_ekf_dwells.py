@@ -6,7 +6,6 @@ scripts' (20000+ and 0..)."""
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 
@@ -15,8 +14,8 @@ from estimators import rul
 from estimators.base import Batch
 from estimators.kernels import dekf_kernels as kern
 from estimators.simulators import friction_drive_scenarios as fs
+from tests.estimators.conftest import upgraded_dekf_state
 
-DATA = Path(__file__).parent / "data"
 BIN_S = 0.02
 RING_BINS = 1500  # 30 s
 
@@ -182,10 +181,7 @@ def test_version_4_state_loads_and_steps() -> None:
     """Bytes dumped by the version-4 code (an observed dwell load, 40 s of a telegraph drive)
     load, upgrade to version 5 with the dwell record empty (the ring and the rest
     unchanged), and step on: the next prognosis starts the record from the ring."""
-    blob = (DATA / "deterioration_ekf_state_v4.bin").read_bytes()
-    assert b'"version":4' in blob
-    state = de.load_state(blob)
-    assert state.version == de.STATE_VERSION == 6
+    state = upgraded_dekf_state(4)
     drive, t, ch = _telegraph_drive(73_005, 60.0)
     cfg = _config(drive)
     assert state.vector.shape[0] == kern.ST_BASE_LEN + 2 * RING_BINS

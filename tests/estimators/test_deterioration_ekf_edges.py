@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from pathlib import Path
 
 import numpy as np
 from scipy.linalg import expm
@@ -17,8 +16,7 @@ from estimators.base import Batch
 from estimators.kernels import dekf_kernels as kern
 from estimators.simulators import friction_drive_scenarios as fs
 from estimators.simulators.friction_drive import PAPER_NOISE_STD, FrictionDriveParams
-
-DATA = Path(__file__).parent / "data"
+from tests.estimators.conftest import upgraded_dekf_state
 
 
 def _drive(seed: int, **changes: object) -> fs.Drive:
@@ -215,10 +213,7 @@ def test_dwells_model_in_a_prognosis() -> None:
 def test_version_3_state_loads_and_steps() -> None:
     """Bytes dumped by the version-3 code (third-difference noise estimate only) load, upgrade
     to version 4 with the one-step-residual entries fresh (the rest unchanged), and step on."""
-    blob = (DATA / "deterioration_ekf_state_v3.bin").read_bytes()
-    assert b'"version":3' in blob
-    state = de.load_state(blob)
-    assert state.version == de.STATE_VERSION == 6
+    state = upgraded_dekf_state(3)
     assert state.vector.shape[0] == kern.ST_BASE_LEN
     assert np.isnan(state.vector[kern.ST_Y_RES : kern.ST_Y_RES + 2]).all()
     assert (state.vector[kern.ST_QTL_RES : kern.ST_N_QTL_RES + 2] == 0.0).all()

@@ -17,6 +17,7 @@ from estimators import rul as rulmod
 from estimators.base import STATUSES, Batch, StateVersionError
 from estimators.kernels import dekf_kernels as kern
 from estimators.simulators import friction_drive_scenarios as fs
+from tests.estimators.conftest import upgraded_dekf_state
 
 DATA = Path(__file__).parent / "data"
 
@@ -367,10 +368,8 @@ def test_covariance_scaling_makes_the_bands_honest_when_the_noise_is_underestima
 def test_version_2_state_loads_and_steps() -> None:
     """Bytes dumped by the version-2 code (before the plant calibration) load, upgrade to the
     current version with no calibration pending (the configured plant stays) and step."""
-    blob = (DATA / "deterioration_ekf_state_v2.bin").read_bytes()
-    assert b'"version":2' in blob
-    state = de.load_state(blob)
-    assert state.version == de.STATE_VERSION and state.initialized
+    state = upgraded_dekf_state(2)
+    assert state.initialized
     assert state.vector.shape[0] == kern.ST_BASE_LEN
     assert math.isnan(state.vector[kern.ST_PCAL_END])
     config = de.parse_config(
@@ -391,10 +390,8 @@ def test_version_2_state_loads_and_steps() -> None:
 def test_version_1_state_loads_and_steps() -> None:
     """Bytes dumped by the version-1 code (before the adaptive parts) load, upgrade and step;
     an unknown version raises."""
-    blob = (DATA / "deterioration_ekf_state_v1.bin").read_bytes()
-    assert b'"version":1' in blob
-    state = de.load_state(blob)
-    assert state.version == de.STATE_VERSION and state.initialized
+    state = upgraded_dekf_state(1)
+    assert state.initialized
     assert state.vector.shape[0] == kern.ST_BASE_LEN
     np.testing.assert_allclose(state.x[2], 9.838, rtol=1e-3)
     config = de.parse_config(
@@ -411,7 +408,7 @@ def test_version_1_state_loads_and_steps() -> None:
     err = np.abs(out.samples["alpha"] - truth["alpha"][keep])
     assert np.max(err[-500:]) < 0.01
     with pytest.raises(StateVersionError, match="7"):
-        de.load_state(blob.replace(b'"version":1', b'"version":7'))
+        de.load_state((DATA / "deterioration_ekf_state_v1.bin").read_bytes().replace(b'"version":1', b'"version":7'))
 
 
 def test_profile_segments_merge_within_tolerance() -> None:
@@ -495,10 +492,7 @@ def test_version_5_state_loads_and_steps() -> None:
     prognosis record) load and upgrade to version 6 with the last prognosis' speeds and m-hat
     NaN (the rest unchanged); the first comparison after it is skipped (nothing to predict its
     span from) and the record goes on from the next."""
-    blob = (DATA / "deterioration_ekf_state_v5.bin").read_bytes()
-    assert b'"version":5' in blob
-    state = de.load_state(blob)
-    assert state.version == de.STATE_VERSION == 6
+    state = upgraded_dekf_state(5)
     assert state.vector.shape[0] == kern.ST_BASE_LEN
     assert np.isnan(state.vector[kern.ST_HIST_W : kern.ST_HIST_M + 1]).all()
     n_before = float(state.vector[kern.ST_ERR_N])
