@@ -28,7 +28,7 @@ Usage::
 
     .venv/bin/python bench/bench_stream_memory.py                      # SQLite
     .venv/bin/python bench/bench_stream_memory.py --pg postgresql://postgres@127.0.0.1:5432/test \\
-        --baseline /work/wt/base
+        --baseline /tmp/base
     .venv/bin/python bench/bench_stream_memory.py --steps 500 1000 --quick-settle
 
 Figures are printed (and written as JSON with ``--json-out``); nothing is asserted.
