@@ -677,6 +677,12 @@ def _parse_table(
     return batch_id, t_s, columns
 
 
+#: Up to this many values, a check first tests the values in plain Python (numpy calls on a few
+#: values cost more than the whole test); a batch that may fail is then checked as a large one
+#: is, so the refusal is the same (here and in ``app.telemetry.validation``).
+SMALL_CHECK_MAX = 64
+
+
 def _finite_increasing(values: list[float]) -> bool:
     """Whether non-empty ``values`` are finite and strictly increasing (False for a NaN
     anywhere: it compares False). Each lies between the first and the last, so finite ends
@@ -718,7 +724,7 @@ def _validate(
         raise InvalidBatch("empty batch: no samples")
     if n > max_samples:
         raise _too_many_samples(n, max_samples)
-    small = n <= SMALL_LIST_MAX
+    small = n <= SMALL_CHECK_MAX
     # A small batch is first tested in plain Python (a few numpy calls on tiny arrays cost more
     # than the whole test); only one that may fail goes through the checks that name the fault.
     if not (small and _finite_increasing(t_s.tolist())):

@@ -35,7 +35,7 @@ from pydantic import AfterValidator, Field
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from app.errors import InvalidBatch
-from app.ingest import FLOAT64_EXACT_INT, ParsedBatch
+from app.ingest import FLOAT64_EXACT_INT, SMALL_CHECK_MAX, ParsedBatch
 
 #: Times at or above this (2001-09-09 as epoch seconds) are read as absolute epoch seconds.
 EPOCH_LIKE_S = 1e9
@@ -90,12 +90,6 @@ def _scale_hint(t_s: float) -> str:
         if abs(t_s) >= bound:
             return f"; this looks like epoch {unit}: times are seconds (divide by {factor:g})"
     return ""
-
-
-#: Up to this many values, a check first tests the values' bounds in plain Python (numpy calls on
-#: a few values cost more than the whole test); a batch that may fail is then checked as a large
-#: one is, so the refusal is the same.
-SMALL_CHECK_MAX = 64
 
 
 def _bounds(values: list[float]) -> tuple[float, float]:

@@ -11,8 +11,15 @@ import pyarrow as pa
 import pytest
 
 from app.errors import InvalidBatch
-from app.ingest import ARROW_TYPES, SMALL_LIST_MAX, ParsedBatch, TimeParams, parse_body
-from app.telemetry.validation import SMALL_CHECK_MAX, BatchLimits, _bounds, check_batch
+from app.ingest import (
+    ARROW_TYPES,
+    SMALL_CHECK_MAX,
+    SMALL_LIST_MAX,
+    ParsedBatch,
+    TimeParams,
+    parse_body,
+)
+from app.telemetry.validation import BatchLimits, _bounds, check_batch
 
 NOW_S = 1.8e9
 LIMITS = BatchLimits(max_abs_value=1e6, max_time_s=1e10, max_future_s=60.0)
