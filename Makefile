@@ -11,6 +11,8 @@ NPM    ?= npm
 VENDOR := app/dashboard/static/vendor
 UPLOT  := $(VENDOR)/uPlot.iife.min.js
 export FLEETHEALTH_REQUIRE_PG ?= 1
+# Test processes (pytest-xdist); TEST_PROCESSES=0 runs the suite in one process.
+TEST_PROCESSES ?= 2
 
 .PHONY: run demo test test-fast lint typecheck bench validate openapi migrate screenshots clean
 
@@ -40,11 +42,11 @@ demo: $(STAMP) $(UPLOT)
 
 ## The whole test suite: estimators, API on SQLite and PostgreSQL, end-to-end.
 test: $(STAMP) $(UPLOT)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(TEST_PROCESSES) --dist loadgroup
 
 ## Estimator and API tests only (no end-to-end processes).
 test-fast: $(STAMP) $(UPLOT)
-	$(BIN)/python -m pytest -q -m "not e2e"
+	$(BIN)/python -m pytest -q -n $(TEST_PROCESSES) --dist loadgroup -m "not e2e"
 
 lint: $(STAMP)
 	$(BIN)/ruff check app estimators fleethealth_tools clients tests bench scripts

@@ -39,7 +39,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.linalg import expm
-from scipy.optimize import least_squares
 
 from estimators.base import FloatArray
 from estimators.kernels import dekf_kernels as kern
@@ -182,6 +181,8 @@ def fit_plant(st: FloatArray, plant: FloatArray, alpha_guess: float) -> PlantFit
     def residual(theta: FloatArray) -> FloatArray:
         d = sampled_map(theta, plant, dt) - target
         return np.concatenate([(chol.T @ d[:, j]) / math.sqrt(sig2[j]) for j in range(2)])
+
+    from scipy.optimize import least_squares  # here: a costly import, used at calibration only
 
     guess = alpha_guess if math.isfinite(alpha_guess) and alpha_guess > 0.0 else 10.0
     x0 = np.array([math.log(guess), math.log(plant[4]), math.log(plant[2]), math.log(plant[5]), 0.0])

@@ -36,7 +36,6 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import Field, ValidationError, field_validator, model_validator
-from scipy.stats import chi2
 
 from estimators.base import (
     Batch,
@@ -460,6 +459,8 @@ def weakening_factor(config: StmmaeConfig) -> float:
     ``beta = chi2.ppf(1 - tail, nu) / nu`` (3.14 for p = 6, rho = 0.95, tail 1e-5)."""
     if config.weakening_factor != "auto":
         return float(config.weakening_factor)
+    from scipy.stats import chi2  # here: scipy.stats costs most of a second to import
+
     rho = config.forgetting_factor
     nu = len(config.model.measurements) * (1.0 + 2.0 * rho)
     return max(1.0, float(chi2.ppf(1.0 - config.fading_tail_probability, nu)) / nu)

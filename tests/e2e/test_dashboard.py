@@ -23,7 +23,9 @@ from tests.e2e.conftest import LiveServer
 
 playwright_api = pytest.importorskip("playwright.sync_api")
 
-pytestmark = [pytest.mark.e2e, pytest.mark.browser, pytest.mark.timeout(1200)]
+# One test process runs the whole module: its server, fleet and browser are set up once.
+pytestmark = [pytest.mark.e2e, pytest.mark.browser, pytest.mark.timeout(1200),
+              pytest.mark.xdist_group("dashboard")]
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = [
