@@ -577,6 +577,15 @@ def _median_step(q: float, a: float, n: float, g_min: float, up_min: float, down
     return q * (up if a > q else 1.0 / up)
 
 
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _matching_step(n: float, d_min: float) -> float:
+    """Step of the covariance matching after ``n`` updates: ``1 / (n + 2)`` while that is above
+    ``d_min``, then ``d_min`` (returned early, so that the division is not done then)."""
+    if not (n + 2.0) * d_min < 1.0:
+        return d_min
+    return 1.0 / (n + 2.0)
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def _dn_target(dn: float, watch: float, alert: float) -> int:
     if dn >= alert:
@@ -1097,9 +1106,7 @@ def _ekf_kernel(
                 rh0 = min(rh0, max((v0 * cd - cb * v1) * rdet, NOISE_FLOOR * v0 / ca))
                 rh1 = min(rh1, max((ca * v1 - cc * v0) * rdet, NOISE_FLOOR * v1 / cd))
             if predicted and nq0 >= MIN_DIFFS and nq1 >= MIN_DIFFS:
-                d = 0.5 * g_min
-                if (n_adapt + 2.0) * d < 1.0:
-                    d = 1.0 / (n_adapt + 2.0)
+                d = _matching_step(n_adapt, 0.5 * g_min)
                 if have0:
                     ea = y0 - x0
                     sa = p00 + rh0
@@ -1173,46 +1180,28 @@ def _ekf_kernel(
             a30 = p03 - k30 * p00 - k31 * p01
             a31 = p13 - k30 * p01 - k31 * p11
             a33 = p33 - k30 * p03 - k31 * p13
-            p00 = (
-                a00 - a00 * k00 - a01 * k01 + rv0 * k00 * k00 + rv1 * k01 * k01
-                + r01 * (k00 * k01 + k01 * k00)
-            )
-            p01 = (
-                a01 - a00 * k10 - a01 * k11 + rv0 * k00 * k10 + rv1 * k01 * k11
-                + r01 * (k00 * k11 + k01 * k10)
-            )
-            p02 = (
-                a02 - a00 * k20 - a01 * k21 + rv0 * k00 * k20 + rv1 * k01 * k21
-                + r01 * (k00 * k21 + k01 * k20)
-            )
-            p03 = (
-                a03 - a00 * k30 - a01 * k31 + rv0 * k00 * k30 + rv1 * k01 * k31
-                + r01 * (k00 * k31 + k01 * k30)
-            )
-            p11 = (
-                a11 - a10 * k10 - a11 * k11 + rv0 * k10 * k10 + rv1 * k11 * k11
-                + r01 * (k10 * k11 + k11 * k10)
-            )
-            p12 = (
-                a12 - a10 * k20 - a11 * k21 + rv0 * k10 * k20 + rv1 * k11 * k21
-                + r01 * (k10 * k21 + k11 * k20)
-            )
-            p13 = (
-                a13 - a10 * k30 - a11 * k31 + rv0 * k10 * k30 + rv1 * k11 * k31
-                + r01 * (k10 * k31 + k11 * k30)
-            )
-            p22 = (
-                a22 - a20 * k20 - a21 * k21 + rv0 * k20 * k20 + rv1 * k21 * k21
-                + r01 * (k20 * k21 + k21 * k20)
-            )
-            p23 = (
-                a23 - a20 * k30 - a21 * k31 + rv0 * k20 * k30 + rv1 * k21 * k31
-                + r01 * (k20 * k31 + k21 * k30)
-            )
-            p33 = (
-                a33 - a30 * k30 - a31 * k31 + rv0 * k30 * k30 + rv1 * k31 * k31
-                + r01 * (k30 * k31 + k31 * k30)
-            )
+            p00 = a00 - a00 * k00 - a01 * k01 + rv0 * k00 * k00 + rv1 * k01 * k01
+            p01 = a01 - a00 * k10 - a01 * k11 + rv0 * k00 * k10 + rv1 * k01 * k11
+            p02 = a02 - a00 * k20 - a01 * k21 + rv0 * k00 * k20 + rv1 * k01 * k21
+            p03 = a03 - a00 * k30 - a01 * k31 + rv0 * k00 * k30 + rv1 * k01 * k31
+            p11 = a11 - a10 * k10 - a11 * k11 + rv0 * k10 * k10 + rv1 * k11 * k11
+            p12 = a12 - a10 * k20 - a11 * k21 + rv0 * k10 * k20 + rv1 * k11 * k21
+            p13 = a13 - a10 * k30 - a11 * k31 + rv0 * k10 * k30 + rv1 * k11 * k31
+            p22 = a22 - a20 * k20 - a21 * k21 + rv0 * k20 * k20 + rv1 * k21 * k21
+            p23 = a23 - a20 * k30 - a21 * k31 + rv0 * k20 * k30 + rv1 * k21 * k31
+            p33 = a33 - a30 * k30 - a31 * k31 + rv0 * k30 * k30 + rv1 * k31 * k31
+            if r01 != 0.0:
+                # the cross term of the gated R_eff, added last (it is zero otherwise)
+                p00 += r01 * (k00 * k01 + k01 * k00)
+                p01 += r01 * (k00 * k11 + k01 * k10)
+                p02 += r01 * (k00 * k21 + k01 * k20)
+                p03 += r01 * (k00 * k31 + k01 * k30)
+                p11 += r01 * (k10 * k11 + k11 * k10)
+                p12 += r01 * (k10 * k21 + k11 * k20)
+                p13 += r01 * (k10 * k31 + k11 * k30)
+                p22 += r01 * (k20 * k21 + k21 * k20)
+                p23 += r01 * (k20 * k31 + k21 * k30)
+                p33 += r01 * (k30 * k31 + k31 * k30)
         elif have0 or have1:
             # scalar update with channel j: K = P[:, j] / S, P = A - A[:, j] K^T + r K K^T
             if have0:
