@@ -292,6 +292,21 @@ def discretize(
     float, float, float, float, float, float, float, float, float,
     float, float, float, float, float, float, float, float, float, float,
 ]:  # fmt: skip
+    """:func:`discretize_plant` with the plant and the series settings of ``cfg``."""
+    return discretize_plant(
+        cfg[CFG_R1], cfg[CFG_R2], cfg[CFG_B1], cfg[CFG_B2], cfg[CFG_INV_J1], cfg[CFG_INV_J2],
+        cfg[CFG_KM], cfg[CFG_F44], cfg[CFG_EXPM_TOL], w1, w2, al, m, u, dt,
+    )  # fmt: skip
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=FMA, inline="always")
+def discretize_plant(
+    r1: float, r2: float, b1: float, b2: float, ij1: float, ij2: float, km: float, f44: float,
+    tol: float, w1: float, w2: float, al: float, m: float, u: float, dt: float,
+) -> tuple[
+    float, float, float, float, float, float, float, float, float,
+    float, float, float, float, float, float, float, float, float, float,
+]:  # fmt: skip
     """Local-linearization step of the model from the posterior ``[w1, w2, al, m]``.
 
     With ``F`` the Jacobian (seed eq. 19) at the posterior, ``G`` its upper-left 3x3 block,
@@ -308,31 +323,29 @@ def discretize(
     exceeds ``THETA_MAX``; ``E`` and ``Gamma`` are then doubled back (``Gamma(2h) = (I + E(h))
     Gamma(h)``, ``E(2h) = E(h)^2``).
 
+    The plant is ``r1, r2, B1, B2, 1 / J1, 1 / J2, Km``; passed as numbers (not the
+    configuration vector) so that the filter's loop, into which this is inlined, keeps them in
+    registers and passes no array.
+
     Returns:
         (E00, E01, E02, E10, E11, E12, E20, E21, E22, c40, c41, c42, e44, dx0, dx1, dx2, gb0,
         gb1, gb2).
     """
-    r1 = cfg[CFG_R1]
-    r2 = cfg[CFG_R2]
-    ij1 = cfg[CFG_INV_J1]
-    ij2 = cfg[CFG_INV_J2]
-    f44 = cfg[CFG_F44]
-    tol = cfg[CFG_EXPM_TOL]
     dv = r1 * w1 - r2 * w2
     # Jacobian, seed eq. 19
-    g00 = -(al * r1 * r1 + cfg[CFG_B1]) * ij1
+    g00 = -(al * r1 * r1 + b1) * ij1
     g01 = al * r1 * r2 * ij1
     g02 = -r1 * dv * ij1
     g10 = al * r1 * r2 * ij2
-    g11 = -(al * r2 * r2 + cfg[CFG_B2]) * ij2
+    g11 = -(al * r2 * r2 + b2) * ij2
     g12 = r2 * dv * ij2
     g20 = -2.0 * al * m * r1 * dv
     g21 = 2.0 * al * m * r2 * dv
     g22 = -m * dv * dv
     f34 = -al * dv * dv
     # drift f(x) + B u (m has none)
-    v0 = (-al * r1 * dv - cfg[CFG_B1] * w1 + cfg[CFG_KM] * u) * ij1
-    v1 = (al * r2 * dv - cfg[CFG_B2] * w2) * ij2
+    v0 = (-al * r1 * dv - b1 * w1 + km * u) * ij1
+    v1 = (al * r2 * dv - b2 * w2) * ij2
     v2 = g22 * al
     # The order is chosen from the 1-norm of the balanced matrix D^-1 G D, D = diag(1, 1, b),
     # b^2 = (|g20| + |g21|) / (|g02| + |g12|): the truncated series commutes with the
@@ -466,7 +479,7 @@ def discretize(
     dx0 = q00 * v0 + q01 * v1 + q02 * v2
     dx1 = q10 * v0 + q11 * v1 + q12 * v2
     dx2 = q20 * v0 + q21 * v1 + q22 * v2
-    kb = cfg[CFG_KM] * ij1
+    kb = km * ij1
     return (
         e00, e01, e02, e10, e11, e12, e20, e21, e22, k0, k1, k2, e44, dx0, dx1, dx2,
         q00 * kb, q10 * kb, q20 * kb,
@@ -554,24 +567,23 @@ def _median_step(q: float, a: float, n: float, g_min: float, up_min: float, down
     """One step of a running median of ``|a|`` (a stochastic-approximation quantile): ``q``
     times ``g`` if ``a > q``, else divided by it, ``g = 1 + max(1 / (n + 1), g_min)``.
     ``up_min = 1 + g_min`` and ``down_min = 1 / up_min`` are the caller's, shared by all medians
-    once ``n + 1 >= 1 / g_min``, so that the step then costs no division."""
+    once ``n + 1 >= 1 / g_min``, so that the step then costs no division (the early return
+    keeps the compiler from computing the early steps' gain on every call)."""
     if n == 0.0:
         return max(a, 1e-300)
     if (n + 1.0) * g_min >= 1.0:
-        up = up_min
-        down = down_min
-    else:
-        up = 1.0 + 1.0 / (n + 1.0)
-        down = 1.0 / up
-    return q * (up if a > q else down)
+        return q * (up_min if a > q else down_min)
+    up = 1.0 + 1.0 / (n + 1.0)
+    return q * (up if a > q else 1.0 / up)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _grow(rows: FloatArray, used: int) -> FloatArray:
-    """A copy of ``rows`` with twice the capacity (first ``used`` rows kept)."""
-    bigger = np.empty((2 * rows.shape[0] + 4, rows.shape[1]))
-    bigger[:used] = rows[:used]
-    return bigger
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _matching_step(n: float, d_min: float) -> float:
+    """Step of the covariance matching after ``n`` updates: ``1 / (n + 2)`` while that is above
+    ``d_min``, then ``d_min`` (returned early, so that the division is not done then)."""
+    if not (n + 2.0) * d_min < 1.0:
+        return d_min
+    return 1.0 / (n + 2.0)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -724,7 +736,8 @@ def _ekf_kernel(
     stop = 0
     hw = cfg[CFG_HEALTH_WINDOW]
     windows = np.empty((int((n - start) // hw) + 1, WIN_LEN))
-    events = np.empty((4, EV_LEN))
+    # at most one level change per sample (reserved, not touched: the rows written are few)
+    events = np.empty((n - start, EV_LEN))
     every = cfg[CFG_RUL_EVERY]
     dt_nominal = cfg[CFG_DT_NOMINAL]
     n_snap_max = 0
@@ -769,6 +782,13 @@ def _ekf_kernel(
     m_ref = 0.1 * abs(cfg[CFG_M0])
     r1 = cfg[CFG_R1]
     r2 = cfg[CFG_R2]
+    fric1 = cfg[CFG_B1]
+    fric2 = cfg[CFG_B2]
+    ij1 = cfg[CFG_INV_J1]
+    ij2 = cfg[CFG_INV_J2]
+    km = cfg[CFG_KM]
+    f44 = cfg[CFG_F44]
+    expm_tol = cfg[CFG_EXPM_TOL]
     skew = cfg[CFG_SKEW]
     pcal_on = cfg[CFG_PCAL] == 1.0
     # a calibration under way stops if the configuration no longer asks for it
@@ -929,11 +949,12 @@ def _ekf_kernel(
                 ik = current[k]
                 du = ik - u_held if math.isfinite(ik) else 0.0
                 big = max(du * du, du_prev * du_prev)
-                if dt != dt_timing:
-                    timing2 = (timing / dt) ** 2
-                    dt_timing = dt
-                var_u += big * timing2
-                kbdt = cfg[CFG_KM] * cfg[CFG_INV_J1] * dt
+                if big > 0.0:
+                    if dt != dt_timing:
+                        timing2 = (timing / dt) ** 2
+                        dt_timing = dt
+                    var_u += big * timing2
+                kbdt = km * ij1 * dt
                 edge = edge_model and du * du * kbdt * kbdt > 1.2 * rh0
                 if not edge:
                     u_step = u_held + 0.5 * du
@@ -946,7 +967,9 @@ def _ekf_kernel(
             (
                 e00, e01, e02, e10, e11, e12, e20, e21, e22, c0, c1, c2, e44, dx0, dx1, dx2,
                 gb0, gb1, gb2,
-            ) = discretize(cfg, x0, x1, x2, m_wear, u_step, dt)  # fmt: skip
+            ) = discretize_plant(
+                r1, r2, fric1, fric2, ij1, ij2, km, f44, expm_tol, x0, x1, x2, m_wear, u_step, dt
+            )  # fmt: skip
             ph00 = e00
             ph01 = e01
             ph10 = e10
@@ -1020,7 +1043,7 @@ def _ekf_kernel(
             ik = current[k]
             u_now = ik if math.isfinite(ik) else u_held
             dvp = r1 * x0 - r2 * x1
-            y0 = y0 - skew * (-x2 * r1 * dvp - cfg[CFG_B1] * x0 + cfg[CFG_KM] * u_now) * cfg[CFG_INV_J1]
+            y0 = y0 - skew * (-x2 * r1 * dvp - fric1 * x0 + km * u_now) * ij1
         # --- noise estimation (when adaptive).
         # Sensor noise R: two running medians per speed, each of a statistic that is the noise
         # plus a non-negative contamination, so the smaller estimate is kept:
@@ -1083,9 +1106,7 @@ def _ekf_kernel(
                 rh0 = min(rh0, max((v0 * cd - cb * v1) * rdet, NOISE_FLOOR * v0 / ca))
                 rh1 = min(rh1, max((ca * v1 - cc * v0) * rdet, NOISE_FLOOR * v1 / cd))
             if predicted and nq0 >= MIN_DIFFS and nq1 >= MIN_DIFFS:
-                d = 0.5 * g_min
-                if (n_adapt + 2.0) * d < 1.0:
-                    d = 1.0 / (n_adapt + 2.0)
+                d = _matching_step(n_adapt, 0.5 * g_min)
                 if have0:
                     ea = y0 - x0
                     sa = p00 + rh0
@@ -1159,46 +1180,28 @@ def _ekf_kernel(
             a30 = p03 - k30 * p00 - k31 * p01
             a31 = p13 - k30 * p01 - k31 * p11
             a33 = p33 - k30 * p03 - k31 * p13
-            p00 = (
-                a00 - a00 * k00 - a01 * k01 + rv0 * k00 * k00 + rv1 * k01 * k01
-                + r01 * (k00 * k01 + k01 * k00)
-            )
-            p01 = (
-                a01 - a00 * k10 - a01 * k11 + rv0 * k00 * k10 + rv1 * k01 * k11
-                + r01 * (k00 * k11 + k01 * k10)
-            )
-            p02 = (
-                a02 - a00 * k20 - a01 * k21 + rv0 * k00 * k20 + rv1 * k01 * k21
-                + r01 * (k00 * k21 + k01 * k20)
-            )
-            p03 = (
-                a03 - a00 * k30 - a01 * k31 + rv0 * k00 * k30 + rv1 * k01 * k31
-                + r01 * (k00 * k31 + k01 * k30)
-            )
-            p11 = (
-                a11 - a10 * k10 - a11 * k11 + rv0 * k10 * k10 + rv1 * k11 * k11
-                + r01 * (k10 * k11 + k11 * k10)
-            )
-            p12 = (
-                a12 - a10 * k20 - a11 * k21 + rv0 * k10 * k20 + rv1 * k11 * k21
-                + r01 * (k10 * k21 + k11 * k20)
-            )
-            p13 = (
-                a13 - a10 * k30 - a11 * k31 + rv0 * k10 * k30 + rv1 * k11 * k31
-                + r01 * (k10 * k31 + k11 * k30)
-            )
-            p22 = (
-                a22 - a20 * k20 - a21 * k21 + rv0 * k20 * k20 + rv1 * k21 * k21
-                + r01 * (k20 * k21 + k21 * k20)
-            )
-            p23 = (
-                a23 - a20 * k30 - a21 * k31 + rv0 * k20 * k30 + rv1 * k21 * k31
-                + r01 * (k20 * k31 + k21 * k30)
-            )
-            p33 = (
-                a33 - a30 * k30 - a31 * k31 + rv0 * k30 * k30 + rv1 * k31 * k31
-                + r01 * (k30 * k31 + k31 * k30)
-            )
+            p00 = a00 - a00 * k00 - a01 * k01 + rv0 * k00 * k00 + rv1 * k01 * k01
+            p01 = a01 - a00 * k10 - a01 * k11 + rv0 * k00 * k10 + rv1 * k01 * k11
+            p02 = a02 - a00 * k20 - a01 * k21 + rv0 * k00 * k20 + rv1 * k01 * k21
+            p03 = a03 - a00 * k30 - a01 * k31 + rv0 * k00 * k30 + rv1 * k01 * k31
+            p11 = a11 - a10 * k10 - a11 * k11 + rv0 * k10 * k10 + rv1 * k11 * k11
+            p12 = a12 - a10 * k20 - a11 * k21 + rv0 * k10 * k20 + rv1 * k11 * k21
+            p13 = a13 - a10 * k30 - a11 * k31 + rv0 * k10 * k30 + rv1 * k11 * k31
+            p22 = a22 - a20 * k20 - a21 * k21 + rv0 * k20 * k20 + rv1 * k21 * k21
+            p23 = a23 - a20 * k30 - a21 * k31 + rv0 * k20 * k30 + rv1 * k21 * k31
+            p33 = a33 - a30 * k30 - a31 * k31 + rv0 * k30 * k30 + rv1 * k31 * k31
+            if r01 != 0.0:
+                # the cross term of the gated R_eff, added last (it is zero otherwise)
+                p00 += r01 * (k00 * k01 + k01 * k00)
+                p01 += r01 * (k00 * k11 + k01 * k10)
+                p02 += r01 * (k00 * k21 + k01 * k20)
+                p03 += r01 * (k00 * k31 + k01 * k30)
+                p11 += r01 * (k10 * k11 + k11 * k10)
+                p12 += r01 * (k10 * k21 + k11 * k20)
+                p13 += r01 * (k10 * k31 + k11 * k30)
+                p22 += r01 * (k20 * k21 + k21 * k20)
+                p23 += r01 * (k20 * k31 + k21 * k30)
+                p33 += r01 * (k30 * k31 + k31 * k30)
         elif have0 or have1:
             # scalar update with channel j: K = P[:, j] / S, P = A - A[:, j] K^T + r K K^T
             if have0:
@@ -1371,15 +1374,12 @@ def _ekf_kernel(
         if target < level:
             target = max(target, _dn_target(dn + dn_hyst, dn_watch, dn_alert))
         if target != level and math.isfinite(dn):
-            if n_ev >= events.shape[0]:
-                events = _grow(events, n_ev)
-            ev = events[n_ev]
-            ev[EV_T] = tk
-            ev[EV_FROM] = level
-            ev[EV_TO] = target
-            ev[EV_DN] = dn
-            ev[EV_DN_LO] = out[OUT_DN_LO, k]
-            ev[EV_DN_HI] = out[OUT_DN_HI, k]
+            events[n_ev, EV_T] = tk
+            events[n_ev, EV_FROM] = level
+            events[n_ev, EV_TO] = target
+            events[n_ev, EV_DN] = dn
+            events[n_ev, EV_DN_LO] = out[OUT_DN_LO, k]
+            events[n_ev, EV_DN_HI] = out[OUT_DN_HI, k]
             n_ev += 1
             level = target
         # --- held current for the next step (zero-order hold of the last valid current)
@@ -1389,75 +1389,73 @@ def _ekf_kernel(
         t_last = tk
         # --- prognosis snapshot (a sample-time crossing: independent of batch splits)
         if math.isfinite(every) and tk >= t_next:
-            row = snaps[n_snap]
-            row[RS_T] = tk
-            row[RS_X] = x0
-            row[RS_X + 1] = x1
-            row[RS_X + 2] = x2
-            row[RS_X + 3] = x3
-            row[RS_P] = p00
-            row[RS_P + 1] = p01
-            row[RS_P + 2] = p02
-            row[RS_P + 3] = p03
-            row[RS_P + 4] = p11
-            row[RS_P + 5] = p12
-            row[RS_P + 6] = p13
-            row[RS_P + 7] = p22
-            row[RS_P + 8] = p23
-            row[RS_P + 9] = p33
-            row[RS_FILLED] = ob_filled
-            row[RS_ALPHA0] = alpha0
-            row[RS_A0_VAR] = a0_var
-            row[RS_COV_SCALE] = cs * cs
-            row[RS_OB_PARTIAL] = ob_dt
+            snaps[n_snap, RS_T] = tk
+            snaps[n_snap, RS_X] = x0
+            snaps[n_snap, RS_X + 1] = x1
+            snaps[n_snap, RS_X + 2] = x2
+            snaps[n_snap, RS_X + 3] = x3
+            snaps[n_snap, RS_P] = p00
+            snaps[n_snap, RS_P + 1] = p01
+            snaps[n_snap, RS_P + 2] = p02
+            snaps[n_snap, RS_P + 3] = p03
+            snaps[n_snap, RS_P + 4] = p11
+            snaps[n_snap, RS_P + 5] = p12
+            snaps[n_snap, RS_P + 6] = p13
+            snaps[n_snap, RS_P + 7] = p22
+            snaps[n_snap, RS_P + 8] = p23
+            snaps[n_snap, RS_P + 9] = p33
+            snaps[n_snap, RS_FILLED] = ob_filled
+            snaps[n_snap, RS_ALPHA0] = alpha0
+            snaps[n_snap, RS_A0_VAR] = a0_var
+            snaps[n_snap, RS_COV_SCALE] = cs * cs
+            snaps[n_snap, RS_OB_PARTIAL] = ob_dt
             for b in range(bins):
                 # oldest bin first
                 src = (ob_head + b) % bins
-                row[RS_RING + b] = st[ST_RING + src]
-                row[RS_RING + bins + b] = st[ST_RING + bins + src]
+                snaps[n_snap, RS_RING + b] = st[ST_RING + src]
+                snaps[n_snap, RS_RING + bins + b] = st[ST_RING + bins + src]
             n_snap += 1
             t_next += every * (math.floor((tk - t_next) / every) + 1.0)
         # --- health window complete?
         w_count += 1.0
         if w_count >= hw:
-            row = windows[n_win]
-            row[WIN_T0] = w_t0
-            row[WIN_T1] = tk
-            row[WIN_N] = w_count
-            row[WIN_N_UPD] = w_n_upd
-            row[WIN_SUM_NIS] = w_sum_nis
-            row[WIN_SUM_DOF] = w_sum_dof
-            row[WIN_N_NIS_OUT] = w_n_nis_out
-            row[WIN_N_E_OUT] = w_n_e_out
-            row[WIN_N_E] = w_n_e
-            row[WIN_CH + CH_N] = c0_n
-            row[WIN_CH + CH_SUM] = c0_sum
-            row[WIN_CH + CH_SUM2] = c0_sum2
-            row[WIN_CH + CH_LAG] = c0_lag
-            row[WIN_CH + CH_N_LAG] = c0_nlag
-            row[WIN_CH + CH_LEN + CH_N] = c1_n
-            row[WIN_CH + CH_LEN + CH_SUM] = c1_sum
-            row[WIN_CH + CH_LEN + CH_SUM2] = c1_sum2
-            row[WIN_CH + CH_LEN + CH_LAG] = c1_lag
-            row[WIN_CH + CH_LEN + CH_N_LAG] = c1_nlag
-            row[WIN_DN0] = w_dn0
-            row[WIN_X] = x0
-            row[WIN_X + 1] = x1
-            row[WIN_X + 2] = x2
-            row[WIN_X + 3] = x3
-            row[WIN_SIGMA] = sg0
-            row[WIN_SIGMA + 1] = sg1
-            row[WIN_SIGMA + 2] = sg2
-            row[WIN_SIGMA + 3] = sg3
-            row[WIN_N_GATED] = w_n_gated
-            row[WIN_R] = rh0
-            row[WIN_R + 1] = rh1
-            row[WIN_ALPHA0] = alpha0
+            windows[n_win, WIN_T0] = w_t0
+            windows[n_win, WIN_T1] = tk
+            windows[n_win, WIN_N] = w_count
+            windows[n_win, WIN_N_UPD] = w_n_upd
+            windows[n_win, WIN_SUM_NIS] = w_sum_nis
+            windows[n_win, WIN_SUM_DOF] = w_sum_dof
+            windows[n_win, WIN_N_NIS_OUT] = w_n_nis_out
+            windows[n_win, WIN_N_E_OUT] = w_n_e_out
+            windows[n_win, WIN_N_E] = w_n_e
+            windows[n_win, WIN_CH + CH_N] = c0_n
+            windows[n_win, WIN_CH + CH_SUM] = c0_sum
+            windows[n_win, WIN_CH + CH_SUM2] = c0_sum2
+            windows[n_win, WIN_CH + CH_LAG] = c0_lag
+            windows[n_win, WIN_CH + CH_N_LAG] = c0_nlag
+            windows[n_win, WIN_CH + CH_LEN + CH_N] = c1_n
+            windows[n_win, WIN_CH + CH_LEN + CH_SUM] = c1_sum
+            windows[n_win, WIN_CH + CH_LEN + CH_SUM2] = c1_sum2
+            windows[n_win, WIN_CH + CH_LEN + CH_LAG] = c1_lag
+            windows[n_win, WIN_CH + CH_LEN + CH_N_LAG] = c1_nlag
+            windows[n_win, WIN_DN0] = w_dn0
+            windows[n_win, WIN_X] = x0
+            windows[n_win, WIN_X + 1] = x1
+            windows[n_win, WIN_X + 2] = x2
+            windows[n_win, WIN_X + 3] = x3
+            windows[n_win, WIN_SIGMA] = sg0
+            windows[n_win, WIN_SIGMA + 1] = sg1
+            windows[n_win, WIN_SIGMA + 2] = sg2
+            windows[n_win, WIN_SIGMA + 3] = sg3
+            windows[n_win, WIN_N_GATED] = w_n_gated
+            windows[n_win, WIN_R] = rh0
+            windows[n_win, WIN_R + 1] = rh1
+            windows[n_win, WIN_ALPHA0] = alpha0
             if w_sum_dof > 0.0:
                 nis_ratio = w_sum_nis / w_sum_dof
                 nis_n += 1.0
                 cs = math.sqrt(nis_ratio) if scale_on and nis_ratio > 1.0 else 1.0
-            row[WIN_COV_SCALE] = nis_ratio if scale_on and nis_ratio > 1.0 else 1.0
+            windows[n_win, WIN_COV_SCALE] = nis_ratio if scale_on and nis_ratio > 1.0 else 1.0
             n_win += 1
             w_count = 0.0
             w_n_upd = w_sum_nis = w_sum_dof = w_n_nis_out = w_n_e_out = w_n_e = 0.0
