@@ -11,7 +11,9 @@ seed's improvement applies the fading matrix on both sides of the propagated cov
 ``P- = L Phi P Phi^T L + Q``, keeping P symmetric. The original one-sided form
 (``strong_tracking``) and a plain Kalman bank (``emmae``) are selectable. Hypothesis
 probabilities follow the Bayes recursion with either the seed's Euclidean-norm likelihood or the
-full Gaussian density, floored per hypothesis.
+full Gaussian density, floored per hypothesis. Each step is driven by the inputs applied after
+the previous sample: its commands passed through a first-order servo model
+(``servo_time_constant_s``) for the surfaces, as commanded for the known inputs.
 
 Decisions are per surface, on its marginal fault probability: a detection needs the probability
 and the isolation odds (its probability of being the only new fault against the strongest other
