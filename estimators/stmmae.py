@@ -11,7 +11,9 @@ seed's improvement applies the fading matrix on both sides of the propagated cov
 ``P- = L Phi P Phi^T L + Q``, keeping P symmetric. The original one-sided form
 (``strong_tracking``) and a plain Kalman bank (``emmae``) are selectable. Hypothesis
 probabilities follow the Bayes recursion with either the seed's Euclidean-norm likelihood or the
-full Gaussian density, floored per hypothesis.
+full Gaussian density, floored per hypothesis. Each step is driven by the inputs applied after
+the previous sample: its commands passed through a first-order servo model
+(``servo_time_constant_s``) for the surfaces, as commanded for the known inputs.
 
 Decisions are per surface, on its marginal fault probability: a detection needs the probability
 and the isolation odds (its probability of being the only new fault against the strongest other
@@ -62,7 +64,7 @@ from estimators.kernels.stmmae_kernels import IntArray
 from estimators.models.small_uav import reference_model
 
 NAME = "stmmae"
-STATE_VERSION = 3
+STATE_VERSION = 4
 
 Variant = Literal["improved", "strong_tracking", "emmae"]
 Likelihood = Literal["euclidean", "gaussian"]
@@ -243,7 +245,7 @@ class StmmaeConfig(EstimatorConfigModel):
         0.05, gt=0.0, le=0.5, description="clearance level of a surface's fault probability"
     )
     hold_s: Number = Field(
-        0.1, ge=0.0, le=3600.0, description="detection hold time while no fault is active, s"
+        0.05, ge=0.0, le=3600.0, description="detection hold time while no fault is active, s"
     )
     hold_while_active_s: Number = Field(
         0.1,
@@ -346,6 +348,13 @@ class StmmaeConfig(EstimatorConfigModel):
         le=10.0,
         description="smallest |deflection estimate - command| for a detection in posterior "
         "standard deviations of the estimate (0: off; the larger of the two gates applies)",
+    )
+    servo_time_constant_s: Number = Field(
+        0.02,
+        ge=0.0,
+        le=10.0,
+        description="time constant of the first-order lag through which a healthy surface "
+        "follows its command, s (0: none); the model is driven by the commands through it",
     )
     nis_watch: Number = Field(
         3.0,
@@ -491,6 +500,8 @@ def _kernel_vector(config: StmmaeConfig) -> FloatArray:
     cfg[kern.CFG_MIN_LLR] = config.min_log_likelihood_ratio
     cfg[kern.CFG_OSC_CORR] = config.oscillation_correlation
     cfg[kern.CFG_OSC_SWING] = math.radians(config.oscillation_swing_deg)
+    tau = config.servo_time_constant_s
+    cfg[kern.CFG_SERVO_A] = 1.0 - math.exp(-config.model.dt_s / tau) if tau > 0.0 else 1.0
     cfg.setflags(write=False)
     return cfg
 
@@ -621,9 +632,10 @@ class StmmaeState:
         version: schema version (``STATE_VERSION``).
         t_last_s: time of the last sample seen (-inf before any).
         vector: FloatArray  # (layout.length,) packed parts, never modified in place.
-        layout_version: the layout ``vector`` has: ``STATE_VERSION``, or 2 for a version-2
-            state just loaded, whose new parts need the configuration and are added by the
-            first :func:`state_parts` or :func:`step` (see :func:`_upgrade_layout_v2`).
+        layout_version: the layout ``vector`` has: ``STATE_VERSION``, or 2 or 3 for a state
+            of that version just loaded, whose new parts need the configuration and are added
+            by the first :func:`state_parts` or :func:`step` (see :func:`_upgrade_layout_v2`,
+            :func:`_upgrade_layout_v3`).
     """
 
     version: int
@@ -652,6 +664,8 @@ class StateParts:
         kind_blocks: FloatArray  # (s, kern.KIND_BLOCKS) 0.05 s block means of the deflection
             estimate over the kind span (rad).
         window: FloatArray  # (kern.W_LEN,) accumulators of the open health window (``W_*``).
+        applied: FloatArray  # (m,) inputs applied over the step into the next sample (the
+            servo model's output; version 4).
     """
 
     samples_seen: float
@@ -666,6 +680,7 @@ class StateParts:
     decisions: FloatArray
     kind_blocks: FloatArray
     window: FloatArray
+    applied: FloatArray
 
 
 def layout(config: StmmaeConfig) -> kern.Layout:
@@ -704,6 +719,7 @@ def state_parts(config: StmmaeConfig, state: StmmaeState) -> StateParts:
         decisions=vec[lay.decisions : lay.kind_blocks].reshape(lay.s, kern.D_LEN),
         kind_blocks=vec[lay.kind_blocks : lay.window].reshape(lay.s, kern.KIND_BLOCKS),
         window=vec[lay.window : lay.window + kern.W_LEN],
+        applied=vec[lay.applied : lay.applied + m],
     )
 
 
@@ -721,6 +737,7 @@ def initial_state(config: StmmaeConfig) -> StmmaeState:
     vec[lay.probs + 1 : lay.probs + lay.nh] = arr.floors[1:]
     vec[lay.probs] = 1.0 - float(arr.floors[1:].sum())
     vec[lay.u_last : lay.u_last + lay.m] = arr.u_trim
+    vec[lay.applied : lay.applied + lay.m] = arr.u_trim
     for h in range(lay.s):
         d = lay.decisions + h * kern.D_LEN
         for idx in kern.D_TIMES:
@@ -734,7 +751,7 @@ def initial_state(config: StmmaeConfig) -> StmmaeState:
 
 def dump_state(state: StmmaeState) -> bytes:
     """Versioned byte form of the state (exact round trip; see :func:`dump_vector_state`). A
-    loaded version-2 state not stepped yet is written back as the version-2 state it is."""
+    loaded version-2 or -3 state not stepped yet is written back as the state it is."""
     return dump_vector_state(NAME, state.layout_version, state.t_last_s, state.vector)
 
 
@@ -751,8 +768,8 @@ _V2_D_LEN = 10  # decision fields per surface in versions 1 and 2
 
 
 def _upgrade_layout_v2(config: StmmaeConfig, vector: FloatArray) -> FloatArray:
-    """Version 2 -> 3 (needs the configuration, so it runs at the first use of a loaded state,
-    not in :func:`load_state`). Version 2 had the no-fault and single-fault filters with one
+    """Version 2 -> 4 (needs the configuration, so it runs at the first use of a loaded state,
+    not in :func:`load_state`; the version-3 step is part of it). Version 2 had the no-fault and single-fault filters with one
     deflection slot and ten decision fields per surface. Kept: every filter's x, P, V (a second
     deflection slot, if any, starts as in a fresh filter: zero, uncorrelated), their
     probabilities, the last inputs, the header and the health-window accumulators; each
@@ -801,7 +818,24 @@ def _upgrade_layout_v2(config: StmmaeConfig, vector: FloatArray) -> FloatArray:
             dec[h, kern.D_KIND_T0] = t_prev
         dec[h, kern.D_DEFL] = vector[kern.ST_HEADER + (h + 1) * flen_old + na_old - 1]
         dec[h, kern.D_PROB] = probs[h + 1]
-    fresh[lay.window :] = vector[length_old - kern.W_LEN :]
+    fresh[lay.window : lay.window + kern.W_LEN] = vector[length_old - kern.W_LEN :]
+    fresh[lay.applied : lay.applied + m] = u_last  # as version 3 -> 4 does
+    fresh.setflags(write=False)
+    return fresh
+
+
+def _upgrade_layout_v3(config: StmmaeConfig, vector: FloatArray) -> FloatArray:
+    """Version 3 -> 4 (needs the configuration for the number of inputs): version 4 appends
+    the inputs applied over the step into the next sample (the servo model's output). A
+    version-3 state drove its filters with the last command itself, so that command is the
+    applied input it leaves: the appended part is a copy of the last inputs."""
+    lay = layout(config)
+    if vector.shape != (lay.applied,):
+        raise EstimatorError(
+            f"version-3 state of length {vector.shape[0]} does not fit this configuration "
+            f"(expected {lay.applied})"
+        )
+    fresh = np.concatenate([vector, vector[lay.u_last : lay.u_last + lay.m]])
     fresh.setflags(write=False)
     return fresh
 
@@ -810,11 +844,13 @@ def _current_vector(config: StmmaeConfig, state: StmmaeState) -> FloatArray:
     """The state's vector in the current layout."""
     if state.layout_version == 2:
         return _upgrade_layout_v2(config, state.vector)
+    if state.layout_version == 3:
+        return _upgrade_layout_v3(config, state.vector)
     return state.vector
 
 
 _UPGRADES: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {1: _upgrade_v1}
-_LAYOUT_VERSIONS = (2, STATE_VERSION)  # versions whose vector this code reads directly
+_LAYOUT_VERSIONS = (2, 3, STATE_VERSION)  # versions whose vector this code reads directly
 
 
 def load_state(data: bytes) -> StmmaeState:

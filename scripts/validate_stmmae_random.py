@@ -60,6 +60,9 @@ GRACE_S = 5.0
 # development used seeds < 100; a first run with seeds 1000+/2000+/3000+ led to the evidence
 # level of 6 nats (docs/methods-stmmae.md), so the reported run uses fresh seeds
 SEED_BASE = {"single": 11000, "pair": 12000, "fault_free": 13000}
+# delays are differences of sample times and onsets (floats): a detection 30 samples after an
+# onset at 21.5 s is 0.30000000000000071 s; the delay goals compare with this tolerance
+TIME_TOL_S = 1e-9
 GOALS = {
     "single": 0.99,
     "pair": 0.90,
@@ -334,9 +337,9 @@ def report(
         f"single, {SEED_BASE['pair']} pair, {SEED_BASE['fault_free']} fault-free; the "
         "development of the decision logic used seeds below 100 and 400-2425, a first run on "
         "seeds 1000+, 2000+, 3000+ set the evidence level, a second run used 11000+, 12000+, "
-        "13000+; the last three revisions report the same flights, 21000+, 22000+, 23000+ "
-        "(`--seed-offset 10000`), this revision was developed on 61000+ and 71000+, 72000+, "
-        "73000+: "
+        "13000+; the last four revisions report the same flights, 21000+, 22000+, 23000+ "
+        "(`--seed-offset 10000`), the previous revision was developed on 61000+ and 71000+, "
+        "72000+, 73000+, this one on 81000+, 82000+, 83000+: "
         "`docs/methods-stmmae.md`, 'Goals and what was measured'): "
         f"{len(singles)} flights with one fault, {len(pairs)} with two overlapping faults, "
         f"{len(free)} fault-free flights ({free_h:.2f} h). Generator: "
@@ -354,9 +357,9 @@ def report(
         f"| overlapping pairs, both isolated | >= 90 % | {_pct(pair_ok, len(pairs))} | "
         f"{met(pair_ok >= GOALS['pair'] * len(pairs))} |",
         f"| stuck >= 2 deg from trim: median delay | <= 0.3 s | {stuck_med:.2f} s | "
-        f"{met(stuck_med <= GOALS['stuck_median_s'])} |",
+        f"{met(stuck_med <= GOALS['stuck_median_s'] + TIME_TOL_S)} |",
         f"| stuck >= 2 deg from trim: 95th percentile | <= 0.5 s | {stuck_p95:.2f} s | "
-        f"{met(stuck_p95 <= GOALS['stuck_p95_s'])} |",
+        f"{met(stuck_p95 <= GOALS['stuck_p95_s'] + TIME_TOL_S)} |",
         f"| stuck vs oscillating right (of all faults) | >= 95 % | "
         f"{_pct(sum(_kind_ok(r) for r in judged), len(all_recs))} | "
         f"{met(kind_rate >= GOALS['kind'])} |",

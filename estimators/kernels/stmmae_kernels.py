@@ -15,7 +15,8 @@ time of the previous sample), per filter ``x`` (na), ``P`` (na x na, row-major, 
 one-sided strong-tracking form makes it non-symmetric), ``V`` (p x p innovation covariance
 estimate) and its "started" flag; the hypothesis probabilities; the last valid inputs; per
 surface the decision fields (``D_*``) and the 0.05 s block history of its deflection estimate
-for the fault-kind test; the health-window accumulators (``W_*``).
+for the fault-kind test; the health-window accumulators (``W_*``); the inputs applied over the
+step into the next sample (the servo model's output, :func:`_bank_kernel`).
 """
 
 from __future__ import annotations
@@ -64,7 +65,9 @@ CFG_OSC_CORR = 19  # autocorrelation level below which a deflection history is o
 CFG_OSC_SWING = 20  # swing (rad) an oscillating fault must also exceed
 CFG_HOLD_ACTIVE_S = 21  # detection hold time while another surface is in fault
 CFG_MIN_ERR_STD = 22  # smallest |deflection estimate - command| in posterior std of the estimate
-CFG_LEN = 23
+CFG_SERVO_A = 23  # servo model: a surface's applied deflection moves by this share of the gap
+# to its command per model step (1 - exp(-dt / tau); 1: no lag)
+CFG_LEN = 24
 
 KIND_BLOCK_S = 0.05  # the kind test reads the deflection estimate as means over 0.05 s blocks
 KIND_BLOCKS = 200  # capacity of the block history: fault_kind_window_s <= 10 s
@@ -222,6 +225,7 @@ class Layout(NamedTuple):
     decisions: int
     kind_blocks: int  # (s, KIND_BLOCKS) block means of the deflection estimate (rad)
     window: int
+    applied: int  # (m,) the inputs applied over the step into the next sample (servo model)
     length: int
 
 
@@ -234,6 +238,7 @@ def state_layout(nh: int, na: int, p: int, m: int, s: int) -> Layout:
     decisions = u_last + m
     kind_blocks = decisions + s * D_LEN
     window = kind_blocks + s * KIND_BLOCKS
+    applied = window + W_LEN
     return Layout(
         nh,
         na,
@@ -247,7 +252,8 @@ def state_layout(nh: int, na: int, p: int, m: int, s: int) -> Layout:
         decisions,
         kind_blocks,
         window,
-        window + W_LEN,
+        applied,
+        applied + m,
     )
 
 
@@ -1065,6 +1071,11 @@ def _bank_kernel(
     probs = st[lay_probs : lay_probs + nh]
     u_last = st[lay_u : lay_u + m]
     wacc = st[lay_win : lay_win + W_LEN]
+    applied = st[lay_win + W_LEN : lay_win + W_LEN + m]
+    servo_a = cfg[CFG_SERVO_A]
+    is_surface = np.zeros(m, dtype=np.bool_)
+    for g in range(ns):
+        is_surface[surface_inputs[g]] = True
     du = np.empty(m)
     ytil = np.empty(p)
     valid = np.empty(p, dtype=np.int64)
@@ -1076,11 +1087,16 @@ def _bank_kernel(
     nis0 = np.nan
     for k in range(k_len):
         tk = t[k]
+        first = st[ST_N_SEEN] == 0.0
         for j in range(m):
             v = u[j, k]
             if math.isfinite(v):
                 u_last[j] = v
-            du[j] = u_last[j] - bank.u_trim[j]
+            if first:
+                applied[j] = u_last[j]
+            # the step into this sample is driven by the inputs applied after the previous
+            # sample (x_k = F x_{k-1} + G u_{k-1}): the previous command through the servo model
+            du[j] = applied[j] - bank.u_trim[j]
         nv = int(np.int64(0))
         for a in range(p):
             v = y[a, k]
@@ -1198,7 +1214,7 @@ def _bank_kernel(
             row += 1
             dec[h, D_DEFL] = defl
             dec[h, D_PROB] = pm[h]
-            cmd = u_last[surface_inputs[h]]
+            cmd = du[surface_inputs[h]] + bank.u_trim[surface_inputs[h]]
             llr = rel_in[h] - rel_base[h] if nv > 0 and dec[h, D_ACTIVE] != 1.0 else 0.0
             code = _decide(
                 cfg,
@@ -1257,6 +1273,13 @@ def _bank_kernel(
         if wacc[W_COUNT] >= hw:
             _close_window(wacc, tk, windows[n_win])
             n_win += 1
+        # servo model: a healthy surface follows its command through a first-order lag; the
+        # other inputs (throttle) act as commanded, one step later
+        for j in range(m):
+            if is_surface[j]:
+                applied[j] += servo_a * (u_last[j] - applied[j])
+            else:
+                applied[j] = u_last[j]
         st[ST_T_PREV] = tk
         st[ST_N_SEEN] += 1.0
     _pack(st, xs, ps, vs, vflags)
