@@ -162,4 +162,7 @@ def test_a_webhook_is_delivered_after_a_sigkill_during_a_receiver_outage(hook_se
         assert {x.headers["idempotency-key"] for x in rx.received} == {ok.headers["idempotency-key"]}
         log = httpx.get(f"{server.url}/v1/webhooks/{sub['id']}/deliveries", headers=server.headers, timeout=30).json()
         (d,) = log["items"]
-        assert d["status"] == "delivered" and d["attempts"] == len(rx.received)
+        # An attempt is logged after its answer: the one the receiver answered just as the
+        # server was killed may be missing from the log and made again (same attempt number).
+        assert d["status"] == "delivered" and len(rx.received) - 1 <= d["attempts"] <= len(rx.received)
+        assert ok.headers["x-fleethealth-attempt"] == str(d["attempts"])
