@@ -768,8 +768,8 @@ _V2_D_LEN = 10  # decision fields per surface in versions 1 and 2
 
 
 def _upgrade_layout_v2(config: StmmaeConfig, vector: FloatArray) -> FloatArray:
-    """Version 2 -> 4 (needs the configuration, so it runs at the first use of a loaded state,
-    not in :func:`load_state`; the version-3 step is part of it). Version 2 had the no-fault and single-fault filters with one
+    """Version 2 -> 3 (needs the configuration, so it runs at the first use of a loaded state,
+    not in :func:`load_state`). Version 2 had the no-fault and single-fault filters with one
     deflection slot and ten decision fields per surface. Kept: every filter's x, P, V (a second
     deflection slot, if any, starts as in a fresh filter: zero, uncorrelated), their
     probabilities, the last inputs, the header and the health-window accumulators; each
@@ -792,7 +792,7 @@ def _upgrade_layout_v2(config: StmmaeConfig, vector: FloatArray) -> FloatArray:
             f"version-2 state of length {vector.shape[0]} does not fit this configuration "
             f"(expected {length_old})"
         )
-    fresh = initial_state(config).vector.copy()
+    fresh = initial_state(config).vector[: lay.applied].copy()  # the version-3 layout
     fresh[: kern.ST_HEADER] = vector[: kern.ST_HEADER]
     for f in range(nh_old):
         old = vector[kern.ST_HEADER + f * flen_old : kern.ST_HEADER + (f + 1) * flen_old]
@@ -818,8 +818,7 @@ def _upgrade_layout_v2(config: StmmaeConfig, vector: FloatArray) -> FloatArray:
             dec[h, kern.D_KIND_T0] = t_prev
         dec[h, kern.D_DEFL] = vector[kern.ST_HEADER + (h + 1) * flen_old + na_old - 1]
         dec[h, kern.D_PROB] = probs[h + 1]
-    fresh[lay.window : lay.window + kern.W_LEN] = vector[length_old - kern.W_LEN :]
-    fresh[lay.applied : lay.applied + m] = u_last  # as version 3 -> 4 does
+    fresh[lay.window :] = vector[length_old - kern.W_LEN :]
     fresh.setflags(write=False)
     return fresh
 
@@ -841,12 +840,13 @@ def _upgrade_layout_v3(config: StmmaeConfig, vector: FloatArray) -> FloatArray:
 
 
 def _current_vector(config: StmmaeConfig, state: StmmaeState) -> FloatArray:
-    """The state's vector in the current layout."""
+    """The state's vector in the current layout (older layouts upgraded step by step)."""
+    vector = state.vector
     if state.layout_version == 2:
-        return _upgrade_layout_v2(config, state.vector)
-    if state.layout_version == 3:
-        return _upgrade_layout_v3(config, state.vector)
-    return state.vector
+        vector = _upgrade_layout_v2(config, vector)
+    if state.layout_version <= 3:
+        vector = _upgrade_layout_v3(config, vector)
+    return vector
 
 
 _UPGRADES: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {1: _upgrade_v1}

@@ -1214,7 +1214,7 @@ def _bank_kernel(
             row += 1
             dec[h, D_DEFL] = defl
             dec[h, D_PROB] = pm[h]
-            cmd = du[surface_inputs[h]] + bank.u_trim[surface_inputs[h]]
+            cmd = applied[surface_inputs[h]]  # the command as the surface follows it
             llr = rel_in[h] - rel_base[h] if nv > 0 and dec[h, D_ACTIVE] != 1.0 else 0.0
             code = _decide(
                 cfg,
