@@ -19,8 +19,10 @@ A stream that cannot be applied is never retried forever:
 
 Applies are group-committed: the loop takes every stream woken since its last round and applies
 their pending batches in one transaction (up to ``processor_max_streams_per_txn`` streams and
-``processor_max_samples_per_txn`` samples), each stream inside its own savepoint so that one
-stream's error rolls back only that stream. Subscribers and ``?wait=`` hear of each apply after the
+``processor_max_samples_per_txn`` samples): each stream's estimators run (a stream whose run
+raises writes nothing), then one statement per table stores the whole group; should that store
+raise, it is rolled back to a savepoint and the streams are stored one by one, each inside its
+own savepoint, so that one stream's error rolls back only that stream. Subscribers and ``?wait=`` hear of each apply after the
 commit. On PostgreSQL the transaction also carries a ``NOTIFY`` per stream (its applied mark and its
 fleet events), delivered to API processes when it commits (:mod:`app.processing.wakeups`). On
 SQLite the estimators run in a read transaction, outside the one write lock, and a short write
@@ -80,6 +82,10 @@ APPLY_GROUPS = Counter(
     "Apply transactions that stored something, by how they ran: one_transaction (SQLite, small, "
     "the lock free; PostgreSQL always), computed_outside (SQLite: a read transaction, then the store)",
     ["path"],
+)
+GROUP_STORE_SPLITS = Counter(
+    "fleethealth_apply_group_splits_total",
+    "Apply groups whose common store raised and were stored stream by stream instead",
 )
 APPLY_SECONDS = Histogram(
     "fleethealth_apply_seconds",
@@ -429,32 +435,35 @@ class Processor:
         alone: bool, first: service.GroupLoad | None = None,
     ) -> tuple[list[ApplyResult], list[int]]:
         """Apply the streams in this transaction, which holds their row locks (PostgreSQL) or
-        the write lock (SQLite), each inside its own savepoint; the results and the streams
-        left by the limits. ``first``: the rows of the first streams, already read here."""
-        results: list[ApplyResult] = []
+        the write lock (SQLite): each stream's estimators run (a stream whose run raises is
+        left out, nothing of it written), then the group is stored (:meth:`_store_group`);
+        the results and the streams left by the limits. ``first``: the rows of the first
+        streams, already read here."""
+        prepared: list[service.PreparedApply] = []
+        left: list[int] = []
         budget = self.settings.processor_max_samples_per_txn
         limits = self._limits()
         loaded = first or service.GroupLoad({}, {}, {})
         for i, pk in enumerate(pks):
             if self._over(i, t0, budget):
-                return results, pks[i:]
+                left = pks[i:]
+                break
             if i or first is None:
                 loaded = self._load(session, pks, i, loaded)
             try:
-                with contextlib.nullcontext() if alone else session.begin_nested():
-                    res = service.apply_pending(session, pk, max_samples=budget, recent=self.recent,
-                                                loaded=loaded, **limits)
-            except Exception as exc:  # this stream's savepoint is rolled back
+                prep = service.prepare_apply(session, pk, max_samples=budget, recent=self.recent, loaded=loaded,
+                                             **limits)
+            except Exception as exc:  # nothing of it was written
                 errors.append((pk, exc))
                 if alone:
                     raise _StreamFailed from exc
                 continue
-            if res is None:
+            if prep is None:
                 idle.append(pk)
                 continue
-            budget -= res.samples
-            results.append(res)
-        return results, []
+            budget -= prep.result.samples
+            prepared.append(prep)
+        return self._store_group(session, prepared, errors, alone), left
 
     def _store(
         self,
@@ -464,19 +473,19 @@ class Processor:
         alone: bool,
         current: service.GroupLoad,
     ) -> list[ApplyResult]:
-        """Store applies prepared outside this transaction (SQLite), each in its own savepoint
-        (an error rolls back that stream only); a stream whose rows are no longer those it was
-        computed from is applied again here, under the write lock."""
-        results: list[ApplyResult] = []
+        """Store applies prepared outside this transaction (SQLite) as a group
+        (:meth:`_store_group`); a stream whose rows are no longer those it was computed from
+        is applied again here, under the write lock, in its own savepoint."""
+        fresh = [p for p in prepared if service.still_current(p, current)]
+        results = self._store_group(session, fresh, errors, alone)
+        stored = {id(p) for p in fresh}
         for prep in prepared:
+            if id(prep) in stored:
+                continue
             pk = prep.result.actuator_pk
             try:
                 with contextlib.nullcontext() if alone else session.begin_nested():
-                    if service.still_current(prep, current):
-                        res: ApplyResult | None = service.store_apply(session, prep)
-                    else:
-                        res = service.apply_pending(session, pk, max_samples=prep.result.samples or 1,
-                                                    **self._limits())
+                    res = service.apply_pending(session, pk, max_samples=prep.result.samples or 1, **self._limits())
             except Exception as exc:  # this stream's savepoint is rolled back
                 errors.append((pk, exc))
                 if alone:
@@ -484,6 +493,39 @@ class Processor:
                 continue
             if res is not None:
                 results.append(res)
+        return results
+
+    def _store_group(
+        self, session: Session, prepared: list[service.PreparedApply], errors: list[tuple[int, Exception]],
+        alone: bool,
+    ) -> list[ApplyResult]:
+        """Store the prepared applies of a group: all of them with one statement per table,
+        inside one savepoint; if that raises, the savepoint is rolled back and the streams are
+        stored one by one, each in its own savepoint, so that only the stream at fault is left
+        out (its error in ``errors``). One stream alone needs no savepoint: its error rolls the
+        whole transaction back."""
+        if not prepared:
+            return []
+        if alone:
+            try:
+                return service.store_group(session, prepared)
+            except Exception as exc:
+                errors.append((prepared[0].result.actuator_pk, exc))
+                raise _StreamFailed from exc
+        try:
+            with session.begin_nested():
+                return service.store_group(session, prepared)
+        except Exception:
+            GROUP_STORE_SPLITS.inc()
+            log.warning("storing a group of %d streams failed; storing them one by one", len(prepared),
+                        exc_info=True)
+        results: list[ApplyResult] = []
+        for prep in prepared:
+            try:
+                with session.begin_nested():
+                    results.append(service.store_apply(session, prep))
+            except Exception as exc:  # this stream's savepoint is rolled back
+                errors.append((prep.result.actuator_pk, exc))
         return results
 
     def _recheck_busy(self, pks: list[int]) -> None:

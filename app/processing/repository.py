@@ -149,17 +149,21 @@ def estimators_of(session: Session, actuator_pks: Sequence[int]) -> dict[int, li
     return out
 
 
-def store_applied(session: Session, stream: StreamRow, est_rows: Sequence[EstimatorRow]) -> None:
-    """Write back what an apply changed: the stream's row and its estimators' rows."""
+def store_applied(session: Session, applies: Sequence[tuple[StreamRow, Sequence[EstimatorRow]]]) -> None:
+    """Write back what applies changed: each stream's row and its estimators' rows, in one
+    statement for the streams and one for the estimators, however many streams."""
     conn = session.connection()
-    conn.execute(_UPDATE_STREAM, {"k_pk": stream.actuator_pk,
-                                  **{f"v_{name}": getattr(stream, name) for name in _STREAM_WRITTEN}})
-    if est_rows:
-        conn.execute(_UPDATE_ESTIMATOR, [
-            {"k_pk": er.actuator_pk, "k_estimator": er.estimator,
-             **{f"v_{name}": getattr(er, name) for name in _ESTIMATOR_WRITTEN}}
-            for er in est_rows
-        ])
+    conn.execute(_UPDATE_STREAM, [
+        {"k_pk": stream.actuator_pk, **{f"v_{name}": getattr(stream, name) for name in _STREAM_WRITTEN}}
+        for stream, _ in applies
+    ])
+    est_params = [
+        {"k_pk": er.actuator_pk, "k_estimator": er.estimator,
+         **{f"v_{name}": getattr(er, name) for name in _ESTIMATOR_WRITTEN}}
+        for _, est_rows in applies for er in est_rows
+    ]
+    if est_params:
+        conn.execute(_UPDATE_ESTIMATOR, est_params)
 
 
 def pending_of(
@@ -264,9 +268,12 @@ def estimators(session: Session, actuator_pk: int) -> list[EstimatorState]:
 _INSERTS = tuple(insert(cast(Table, model.__table__)) for model in OUTPUT_MODELS)
 
 
-def insert_rows(session: Session, rows: Rows) -> None:
+def insert_rows(session: Session, rows: Sequence[Rows]) -> None:
+    """Insert the output rows of one or more applies, one statement per table (rows of a
+    table keep their order: apply by apply, each in its own order)."""
     conn = session.connection()
-    for items, stmt in zip((rows.health, rows.outputs, rows.events, rows.rul), _INSERTS, strict=True):
+    for i, stmt in enumerate(_INSERTS):
+        items = [r for part in rows for r in (part.health, part.outputs, part.events, part.rul)[i]]
         if items:
             conn.execute(stmt, items)
 

@@ -282,10 +282,20 @@ def load_current(session: Session, actuator_pks: Sequence[int], *, is_sqlite: bo
 def store_apply(session: Session, prepared: PreparedApply) -> ApplyResult:
     """Write a prepared apply in the caller's transaction: outputs, states, the applied mark,
     and the fleet events and alarms it logs."""
-    repository.insert_rows(session, prepared.rows)
-    repository.store_applied(session, prepared.stream, prepared.est_rows)
-    events.record_apply(session, prepared.result)  # the fleet event log and alarms, in this transaction
-    return prepared.result
+    return store_group(session, [prepared])[0]
+
+
+def store_group(session: Session, prepared: Sequence[PreparedApply]) -> list[ApplyResult]:
+    """Write prepared applies of several streams in the caller's transaction, with one
+    statement per table for all of them (the outputs, the streams' rows, the estimators'
+    rows), then each stream's fleet events and alarms in stream order. Either all of it is
+    written or the caller rolls it back: a caller that must isolate one stream's error stores
+    the streams one by one (:func:`store_apply`), each in its own savepoint."""
+    repository.insert_rows(session, [p.rows for p in prepared])
+    repository.store_applied(session, [(p.stream, p.est_rows) for p in prepared])
+    for p in prepared:
+        events.record_apply(session, p.result)  # the fleet event log and alarms, in this transaction
+    return [p.result for p in prepared]
 
 
 def apply_pending(
@@ -362,7 +372,7 @@ def replay_estimator(
     for part in repository.logged_batches(session, actuator_pk, upto, MAX_BATCHES_PER_QUERY, first_seq=first):
         step = run_estimators(actuator_pk, [runner], [decode(b) for b in part], store_outputs=store_outputs)
         _label(step.rows, [er])
-        repository.insert_rows(session, step.rows)
+        repository.insert_rows(session, [step.rows])
         rul_rows.extend(step.rows.rul)
         runner = step.runners[0]
     er.state = runner.kind.dump_state(runner.state)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import re
 import threading
 from concurrent.futures import Future
 
@@ -238,3 +239,82 @@ def test_each_write_transaction_has_its_own_durability(tmp_path) -> None:  # typ
             seen.append(s.execute(text("PRAGMA synchronous")).scalar())
     db.dispose()
     assert seen == [1, 2, 2, 1, 1, 2]  # NORMAL, FULL
+
+
+def _logged_streams(api: Api, acts: list[str]) -> None:
+    for act in acts:
+        api.setup_actuator(act=act)
+        s = make_series(500, seed=7)
+        for k in range(2):
+            sl = slice(250 * k, 250 * (k + 1))
+            r = api.send_arrow("N1", act, f"{act}-{k}", s.t_s[sl], {"current": s.current[sl],
+                               "voltage": s.voltage[sl]}, wait=0)
+            assert r.status_code == 202, r.text
+
+
+def test_a_group_is_stored_with_one_statement_per_table_and_one_savepoint(
+    api_noproc: Api, db_url: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Not a savepoint and a set of statements per stream: one of each for the whole group."""
+    from sqlalchemy import event
+
+    acts = ["s0", "s1", "s2"]
+    _logged_streams(api_noproc, acts)
+    db = Database(db_url)
+    pks = _pks(db)
+    statements: list[str] = []
+
+    def seen(conn, cursor, statement, params, context, executemany):  # type: ignore[no-untyped-def]
+        m = re.match(r"\s*(UPDATE|INSERT INTO|SAVEPOINT)\s+(\w+)", statement, re.IGNORECASE)
+        if m:
+            statements.append(f"{m.group(1).split()[0].upper()} {m.group(2)}")
+
+    event.listen(db.engine, "before_cursor_execute", seen)
+    processor = Processor(db, make_settings(db_url, processor_txn_budget_s=60.0))
+    assert processor.apply_streams([pks[a] for a in acts]) == 6
+    with db.read() as session:
+        marks = sorted(session.scalars(select(Stream.last_applied_seq)))
+    db.dispose()
+    assert marks == [2, 2, 2]
+    assert sum(s.startswith("SAVEPOINT") for s in statements) <= 1
+    updates = [s for s in statements if s.startswith("UPDATE")]
+    assert updates.count("UPDATE streams") == 1 and updates.count("UPDATE estimator_states") == 1
+    assert statements.count("INSERT health_windows") <= 1
+
+
+def test_a_group_whose_store_fails_is_stored_stream_by_stream(
+    api_noproc: Api, db_url: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A stream whose rows cannot be stored spoils the group's common store: that is rolled
+    back, the streams are stored one by one, and only the faulty one is left out (once each:
+    nothing of the rolled-back store remains)."""
+    from app.events import service as events
+    from app.processing import processor as processor_module
+
+    acts = ["s0", "s1", "bad"]
+    _logged_streams(api_noproc, acts)
+    db = Database(db_url)
+    pks = _pks(db)
+    real_record = events.record_apply
+
+    def record(session, result):  # type: ignore[no-untyped-def]
+        if result.actuator_pk == pks["bad"]:
+            raise RuntimeError("simulated store failure of one stream")
+        return real_record(session, result)
+
+    monkeypatch.setattr(events, "record_apply", record)
+    splits = processor_module.GROUP_STORE_SPLITS._value.get()
+    processor = Processor(db, make_settings(db_url, processor_max_attempts=1, processor_txn_budget_s=60.0))
+    assert processor.apply_streams([pks[a] for a in acts]) == 4
+    with db.read() as session:
+        marks = {pk: (seq, failure) for pk, seq, failure in
+                 session.execute(select(Stream.actuator_pk, Stream.last_applied_seq, Stream.failure))}
+        windows = dict(session.execute(select(HealthWindowRow.actuator_pk, func.count())
+                                       .group_by(HealthWindowRow.actuator_pk)).all())
+    db.dispose()
+    assert processor_module.GROUP_STORE_SPLITS._value.get() == splits + 1
+    for act in ("s0", "s1"):
+        assert marks[pks[act]] == (2, None)
+    assert marks[pks["bad"]][0] == 0 and "simulated store failure" in (marks[pks["bad"]][1] or "")
+    assert pks["bad"] not in windows
+    assert windows[pks["s0"]] == windows[pks["s1"]] > 0
