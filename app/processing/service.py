@@ -5,7 +5,7 @@ results back."""
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from enum import Enum
 
 from sqlalchemy.orm import Session
@@ -218,7 +218,7 @@ def prepare_apply(
     )
     if not taken:
         return None
-    read_stream, read_est_rows = replace(stream), [replace(er) for er in est_rows]
+    read_stream, read_est_rows = stream.copy(), [er.copy() for er in est_rows]
     pending = _at_baseline_boundary(stream, est_rows, taken)
     held = [
         runner_of(hot, actuator_pk, er.estimator, er.config, er.state, er.status, tuple(er.reasons),
