@@ -49,6 +49,10 @@ def is_sqlite(url: str) -> bool:
     return make_url(normalize_url(url)).get_backend_name() == "sqlite"
 
 
+#: SQLite connections kept open in the pool (more are opened, up to twice as many, and closed on return).
+SQLITE_POOL_SIZE = 16
+
+
 def make_engine(url: str, *, sqlite_synchronous: str = "FULL", echo: bool = False) -> Engine:
     url = normalize_url(url)
     if is_sqlite(url):
@@ -56,7 +60,12 @@ def make_engine(url: str, *, sqlite_synchronous: str = "FULL", echo: bool = Fals
         if db and db != ":memory:":
             Path(db).parent.mkdir(parents=True, exist_ok=True)
         engine = create_engine(
-            url, echo=echo, connect_args={"timeout": 60.0, "check_same_thread": False}
+            url, echo=echo, connect_args={"timeout": 60.0, "check_same_thread": False},
+            # Kept open, not opened per use: the threads that read (the request pool, the
+            # parse threads, the streaming watchers) check out more than QueuePool's default 5
+            # at once, and each connection opened beyond it costs its WAL set-up and PRAGMAs,
+            # to be closed again on return.
+            pool_size=SQLITE_POOL_SIZE, max_overflow=2 * SQLITE_POOL_SIZE,
         )
         _install_sqlite_hooks(engine, sqlite_synchronous)
         return engine
