@@ -591,10 +591,18 @@ def run_backend(
                 cpu0 = tree_cpu_s(pid)
                 rate["post1_sequential"] = bench_post1_sequential(server, tail, args.post1, args.timeout_s)
                 cpu1 = tree_cpu_s(pid)
+                threads1 = metric_by_label(server, "fleethealth_thread_cpu_seconds_total", "thread")
                 rate["post1_concurrent"] = bench_post1_concurrent(
                     server, tail, args.post1_clients, args.post1_per_client, args.load_processes, args.timeout_s
                 )
                 cpu2 = tree_cpu_s(pid)
+                threads2 = metric_by_label(server, "fleethealth_thread_cpu_seconds_total", "thread")
+                if threads2:  # the server's own split (trees without the metric print nothing)
+                    n = rate["post1_concurrent"]["requests"]
+                    split = sorted(((1e3 * (v - threads1.get(k, 0.0)) / n, k) for k, v in threads2.items()),
+                                   reverse=True)
+                    print(f"[{backend}] post1_concurrent, server CPU ms/request by thread: "
+                          + ", ".join(f"{k} {ms:.3f}" for ms, k in split if ms >= 0.0005), flush=True)
                 rate["plain_write"] = bench_plain_write(server, f"W{run_id}-", max(50, args.post1 // 4))
                 cpu3 = tree_cpu_s(pid)
                 rate["floor_concurrent"] = bench_floor(

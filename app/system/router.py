@@ -22,7 +22,7 @@ from app.db import Database
 from app.deps import SettingsDep, bearer, verify_principal
 from app.errors import NotFound, error_responses, json_response
 from app.migrate import current_revision, head_revision
-from app.system import repository
+from app.system import repository, threads
 
 router = APIRouter(tags=["system"])
 
@@ -134,10 +134,14 @@ def metrics_allowed(
 )
 def metrics() -> Response:
     """Prometheus text exposition: ingest, apply, streaming and stream failure counters
-    (``fleethealth_streams_failed`` counts the streams no longer applied). Process-wide counts
-    only, never per operator; access per ``FLEETHEALTH_METRICS_ACCESS`` (default: a key with
-    the read scope)."""
+    (``fleethealth_streams_failed`` counts the streams no longer applied), and the CPU seconds
+    of the process's threads by name (``fleethealth_thread_cpu_seconds_total``). Process-wide
+    counts only, never per operator; access per ``FLEETHEALTH_METRICS_ACCESS`` (default: a key
+    with the read scope)."""
     return Response(generate_latest(), media_type=CONTENT_TYPE_LATEST)
+
+
+threads.register()
 
 
 # ----------------------------------------------------------------------------------- API docs
