@@ -24,6 +24,7 @@ from app.telemetry.body import RELEASE_AFTER_BYTES, RequestBody, Reservation, re
 from app.telemetry.repository import LoggedBatch, LogHead
 from app.telemetry.validation import DEFAULT_LIMITS, BatchLimits, check_batch, decoding_guard
 from app.telemetry.writer import LogWriter
+from app.websocket.hub import inbox
 
 
 @dataclass(frozen=True)
@@ -201,7 +202,9 @@ async def ingest_body(
         )
         while True:
             try:
-                return await asyncio.wrap_future(writer.submit(target.actuator_pk, parsed))
+                # Resolved through the loop's inbox: the acks of one group commit reach the
+                # loop in one wake-up, not one call_soon_threadsafe each.
+                return await inbox(asyncio.get_running_loop()).wrap(writer.submit(target.actuator_pk, parsed))
             except ActuatorDeleted:
                 if not from_cache:
                     raise
