@@ -326,6 +326,12 @@ class StmmaeConfig(EstimatorConfigModel):
         description="span from the start of the detection hold over which the fault kind is "
         "judged, s (longer than half the slowest oscillation period to be recognised)",
     )
+    fault_kind_cut: bool = Field(
+        True,
+        description="a detection cuts the open kind spans of the faults already active at "
+        "its onset (less 0.5 s): their kind is judged on the history before the new fault "
+        "began, when at least 1 s of it is left",
+    )
     deflection_limit_deg: Number = Field(
         30.0, gt=0.0, le=180.0, description="clip of the deflection estimate, deg"
     )
@@ -495,6 +501,7 @@ def _kernel_vector(config: StmmaeConfig) -> FloatArray:
     cfg[kern.CFG_LIMIT] = math.radians(config.deflection_limit_deg)
     cfg[kern.CFG_KIND_WINDOW_S] = config.fault_kind_window_s
     cfg[kern.CFG_REBASE] = 1.0 if config.rebase_on_detection else 0.0
+    cfg[kern.CFG_KIND_CUT] = 1.0 if config.fault_kind_cut else 0.0
     cfg[kern.CFG_CLEAR_DEFL] = math.radians(config.clear_deflection_deg)
     cfg[kern.CFG_CLEAR_SMOOTH_S] = config.clear_smoothing_s
     cfg[kern.CFG_MIN_LLR] = config.min_log_likelihood_ratio
