@@ -878,7 +878,12 @@ def _decide(
     code = 0
     if dec[h, D_KIND] == KIND_PENDING and dec[h, D_BLK_IDX] < KIND_BLOCKS:
         if t - dec[h, D_KIND_T0] < cfg[CFG_KIND_WINDOW_S]:
-            _kind_add(dec, kbuf, h, t, defl, defl_var)
+            # the estimate is the probability-weighted mean of the filters that free the
+            # surface: while they hold less than the onset level of the probability, the data
+            # reject them and their estimate says nothing of the surface (a gap: the block
+            # history repeats the last block's mean)
+            if prob > cfg[CFG_ONSET_P]:
+                _kind_add(dec, kbuf, h, t, defl, defl_var)
         else:
             _judge_kind(cfg, dec, kbuf, h)
             dec[h, D_BLK_IDX] = KIND_BLOCKS  # span closed
