@@ -677,6 +677,26 @@ def _kind_add(
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _kind_pad(cfg: FloatArray, dec: FloatArray, kbuf: FloatArray, h: int, t: float) -> None:
+    """Before the kind is judged at ``t``: a history left shorter than ``KIND_MIN_BLOCKS`` by
+    a gap at the end of the span (samples skipped, see :func:`_decide`) repeats the last
+    block's mean up to ``t`` (at most the span's end), as a gap inside the span does, so that
+    a kind is judged; a history long enough is judged as it is (a flat tail would dilute an
+    oscillation's negative lobe)."""
+    t_end = min(t, dec[h, D_KIND_T0] + cfg[CFG_KIND_WINDOW_S])
+    idx = min(int(math.floor((t_end - dec[h, D_KIND_T0]) / KIND_BLOCK_S)), KIND_BLOCKS)
+    cur = int(dec[h, D_BLK_IDX])
+    if cur < 0 or cur + 1 >= KIND_MIN_BLOCKS or not dec[h, D_BLK_N] > 0.0 or idx <= cur + 1:
+        return
+    mean = dec[h, D_BLK_SUM] / dec[h, D_BLK_N]
+    for b in range(cur, idx):
+        kbuf[h, b] = mean
+    dec[h, D_BLK_IDX] = idx - 1
+    dec[h, D_BLK_SUM] = mean
+    dec[h, D_BLK_N] = 1.0
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def kind_correlation(x: FloatArray, nb: int) -> float:
     """Smallest normalized autocorrelation of the first ``nb`` block means ``x`` over lags from
     ``KIND_MIN_LAG_S`` to half the history:
@@ -885,6 +905,7 @@ def _decide(
             if prob > cfg[CFG_ONSET_P]:
                 _kind_add(dec, kbuf, h, t, defl, defl_var)
         else:
+            _kind_pad(cfg, dec, kbuf, h, t)
             _judge_kind(cfg, dec, kbuf, h)
             dec[h, D_BLK_IDX] = KIND_BLOCKS  # span closed
             code = EV_CLASSIFIED
@@ -896,6 +917,7 @@ def _decide(
             dec[h, D_BELOW_T] = t
         if t - dec[h, D_BELOW_T] >= cfg[CFG_CLEAR_HOLD_S]:
             if dec[h, D_BLK_IDX] < KIND_BLOCKS:
+                _kind_pad(cfg, dec, kbuf, h, t)
                 _judge_kind(cfg, dec, kbuf, h)
                 dec[h, D_BLK_IDX] = KIND_BLOCKS
             return EV_CLEARED
