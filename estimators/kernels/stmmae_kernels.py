@@ -1338,10 +1338,14 @@ def _bank_kernel(
                         continue
                     t_cut = dec[g, D_ONSET_T] - KIND_CUT_MARGIN_S
                     for h in range(ns):
-                        if h != g and dec[h, D_ACTIVE] == 1.0 and dec[h, D_DETECTED_T] != tk:
-                            if cut_kind_span(cfg, dec, kbuf, h, t_cut):
-                                events = _write_event(events, n_ev, tk, EV_CLASSIFIED, dec, h)
-                                n_ev += 1
+                        if (
+                            h != g
+                            and dec[h, D_ACTIVE] == 1.0
+                            and dec[h, D_DETECTED_T] != tk
+                            and cut_kind_span(cfg, dec, kbuf, h, t_cut)
+                        ):
+                            events = _write_event(events, n_ev, tk, EV_CLASSIFIED, dec, h)
+                            n_ev += 1
         row += ns
         samples[row, k] = nis0
         # health window
