@@ -20,7 +20,9 @@ and the isolation odds (its probability of being the only new fault against the 
 surface's) above ``detect_probability``, the deflection estimate off its command and the
 log-likelihood ratio between "this surface and a subset of the active faults" and "a subset of
 the active faults" summed over the run above ``min_log_likelihood_ratio``, held ``hold_s``; the fault kind (stuck or oscillating) is judged from the autocorrelation of the
-deflection history over ``fault_kind_window_s``; clearance needs the surface back at its
+deflection history over ``fault_kind_window_s`` (samples with the surface's probability at or
+below ``onset_probability`` skipped; cut before the onset of a fault detected during it,
+``fault_kind_cut``); clearance needs the surface back at its
 command with a low probability for ``clear_hold_s``.
 
 Equations, choices where the seed is silent, the configuration reference and what was measured:
@@ -950,7 +952,8 @@ def _detail(
     """Detail of a fault (events, diagnosis and status reasons share it, so they agree).
 
     ``fault_kind`` is ``"pending"`` until the kind span closes (``fault_kind_window_s`` after
-    the start of the detection hold; a ``fault_classified`` event then gives the judgement),
+    the start of the detection hold, or earlier when another surface is detected during it;
+    a ``fault_classified`` event then gives the judgement),
     ``"stuck"`` (with ``stuck_position_deg``) or ``"oscillating"``."""
     kind = FAULT_KINDS[float(code)]
     return {
