@@ -20,7 +20,9 @@ and the isolation odds (its probability of being the only new fault against the 
 surface's) above ``detect_probability``, the deflection estimate off its command and the
 log-likelihood ratio between "this surface and a subset of the active faults" and "a subset of
 the active faults" summed over the run above ``min_log_likelihood_ratio``, held ``hold_s``; the fault kind (stuck or oscillating) is judged from the autocorrelation of the
-deflection history over ``fault_kind_window_s``; clearance needs the surface back at its
+deflection history over ``fault_kind_window_s`` (samples with the surface's probability at or
+below ``onset_probability`` skipped; cut before the onset of a fault detected during it,
+``fault_kind_cut``); clearance needs the surface back at its
 command with a low probability for ``clear_hold_s``.
 
 Equations, choices where the seed is silent, the configuration reference and what was measured:
@@ -326,6 +328,12 @@ class StmmaeConfig(EstimatorConfigModel):
         description="span from the start of the detection hold over which the fault kind is "
         "judged, s (longer than half the slowest oscillation period to be recognised)",
     )
+    fault_kind_cut: bool = Field(
+        True,
+        description="a detection cuts the open kind spans of the faults already active at "
+        "its onset (less 0.5 s): their kind is judged on the history before the new fault "
+        "began, when at least 1 s of it is left",
+    )
     deflection_limit_deg: Number = Field(
         30.0, gt=0.0, le=180.0, description="clip of the deflection estimate, deg"
     )
@@ -495,6 +503,7 @@ def _kernel_vector(config: StmmaeConfig) -> FloatArray:
     cfg[kern.CFG_LIMIT] = math.radians(config.deflection_limit_deg)
     cfg[kern.CFG_KIND_WINDOW_S] = config.fault_kind_window_s
     cfg[kern.CFG_REBASE] = 1.0 if config.rebase_on_detection else 0.0
+    cfg[kern.CFG_KIND_CUT] = 1.0 if config.fault_kind_cut else 0.0
     cfg[kern.CFG_CLEAR_DEFL] = math.radians(config.clear_deflection_deg)
     cfg[kern.CFG_CLEAR_SMOOTH_S] = config.clear_smoothing_s
     cfg[kern.CFG_MIN_LLR] = config.min_log_likelihood_ratio
@@ -943,7 +952,8 @@ def _detail(
     """Detail of a fault (events, diagnosis and status reasons share it, so they agree).
 
     ``fault_kind`` is ``"pending"`` until the kind span closes (``fault_kind_window_s`` after
-    the start of the detection hold; a ``fault_classified`` event then gives the judgement),
+    the start of the detection hold, or earlier when another surface is detected during it;
+    a ``fault_classified`` event then gives the judgement),
     ``"stuck"`` (with ``stuck_position_deg``) or ``"oscillating"``."""
     kind = FAULT_KINDS[float(code)]
     return {

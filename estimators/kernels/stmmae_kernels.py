@@ -65,14 +65,19 @@ CFG_OSC_CORR = 19  # autocorrelation level below which a deflection history is o
 CFG_OSC_SWING = 20  # swing (rad) an oscillating fault must also exceed
 CFG_HOLD_ACTIVE_S = 21  # detection hold time while another surface is in fault
 CFG_MIN_ERR_STD = 22  # smallest |deflection estimate - command| in posterior std of the estimate
+CFG_KIND_CUT = 24  # 1: a detection cuts the open kind spans of the faults active before it
 CFG_SERVO_A = 23  # servo model: a surface's applied deflection moves by this share of the gap
 # to its command per model step (1 - exp(-dt / tau); 1: no lag)
-CFG_LEN = 24
+CFG_LEN = 25
 
 KIND_BLOCK_S = 0.05  # the kind test reads the deflection estimate as means over 0.05 s blocks
 KIND_BLOCKS = 200  # capacity of the block history: fault_kind_window_s <= 10 s
 KIND_MIN_LAG_S = 0.2  # shortest lag of the autocorrelation test (half period of 2.5 Hz)
 KIND_MIN_BLOCKS = 20  # a history shorter than 1 s leaves the kind undetermined
+# when another surface is detected during a fault's kind span, the span is cut this long before
+# that surface's onset (its probability passes the onset level some tenths of a second after
+# its fault begins, and from then on its effect leaks into this fault's estimate)
+KIND_CUT_MARGIN_S = 0.5
 KIND_PENDING = 0.0
 KIND_STUCK = 1.0
 KIND_OSCILLATING = 2.0
@@ -672,6 +677,26 @@ def _kind_add(
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _kind_pad(cfg: FloatArray, dec: FloatArray, kbuf: FloatArray, h: int, t: float) -> None:
+    """Before the kind is judged at ``t``: a history left shorter than ``KIND_MIN_BLOCKS`` by
+    a gap at the end of the span (samples skipped, see :func:`_decide`) repeats the last
+    block's mean up to ``t`` (at most the span's end), as a gap inside the span does, so that
+    a kind is judged; a history long enough is judged as it is (a flat tail would dilute an
+    oscillation's negative lobe)."""
+    t_end = min(t, dec[h, D_KIND_T0] + cfg[CFG_KIND_WINDOW_S])
+    idx = min(int(math.floor((t_end - dec[h, D_KIND_T0]) / KIND_BLOCK_S)), KIND_BLOCKS)
+    cur = int(dec[h, D_BLK_IDX])
+    if cur < 0 or cur + 1 >= KIND_MIN_BLOCKS or not dec[h, D_BLK_N] > 0.0 or idx <= cur + 1:
+        return
+    mean = dec[h, D_BLK_SUM] / dec[h, D_BLK_N]
+    for b in range(cur, idx):
+        kbuf[h, b] = mean
+    dec[h, D_BLK_IDX] = idx - 1
+    dec[h, D_BLK_SUM] = mean
+    dec[h, D_BLK_N] = 1.0
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def kind_correlation(x: FloatArray, nb: int) -> float:
     """Smallest normalized autocorrelation of the first ``nb`` block means ``x`` over lags from
     ``KIND_MIN_LAG_S`` to half the history:
@@ -726,6 +751,52 @@ def _judge_kind(cfg: FloatArray, dec: FloatArray, kbuf: FloatArray, h: int) -> N
         return
     osc = corr < cfg[CFG_OSC_CORR] and episode_swing(dec, h) > cfg[CFG_OSC_SWING]
     dec[h, D_KIND] = KIND_OSCILLATING if osc else KIND_STUCK
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def cut_kind_span(cfg: FloatArray, dec: FloatArray, kbuf: FloatArray, h: int, t_cut: float) -> bool:
+    """Another surface was detected while the kind span of ``h`` is open: judge the kind on the
+    block history before ``t_cut`` (the other surface's onset less ``KIND_CUT_MARGIN_S``) and
+    close the span, if that history has at least ``KIND_MIN_BLOCKS`` blocks and either shows an
+    oscillation or covers at least half of ``fault_kind_window_s`` (a shorter history cannot
+    show the negative lobe of a slow oscillation, so "stuck" is not concluded from it: the span
+    then runs on as before). The span's mean and swing are then those of the blocks kept (the
+    episode sums are replaced by them, equal weights). Returns True when the span was closed
+    (the caller writes ``fault_classified``).
+
+    Why: from the other fault's start its effect enters this surface's estimate (the filters
+    that free this surface explain part of it, and the estimate switches filters when the
+    active set changes), so an oscillation of the other surface made a stuck one look
+    oscillating, and a stuck other half damped an oscillation (docs/methods-stmmae.md)."""
+    if dec[h, D_KIND] != KIND_PENDING or not dec[h, D_BLK_IDX] < KIND_BLOCKS:
+        return False
+    nb = int(math.floor((t_cut - dec[h, D_KIND_T0]) / KIND_BLOCK_S))
+    if nb < KIND_MIN_BLOCKS:
+        return False
+    cur = int(dec[h, D_BLK_IDX])
+    if 0 <= cur < KIND_BLOCKS and dec[h, D_BLK_N] > 0.0:
+        kbuf[h, cur] = dec[h, D_BLK_SUM] / dec[h, D_BLK_N]
+    nb = min(nb, cur + 1, KIND_BLOCKS)
+    if nb < KIND_MIN_BLOCKS:
+        return False
+    s1 = 0.0
+    s2 = 0.0
+    for i in range(nb):
+        s1 += kbuf[h, i]
+        s2 += kbuf[h, i] * kbuf[h, i]
+    mean = s1 / nb
+    swing = 2.0 * math.sqrt(max(s2 / nb - mean * mean, 0.0))
+    corr = kind_correlation(kbuf[h], nb)
+    osc = (not math.isnan(corr)) and corr < cfg[CFG_OSC_CORR] and swing > cfg[CFG_OSC_SWING]
+    if not osc and nb * KIND_BLOCK_S < 0.5 * cfg[CFG_KIND_WINDOW_S]:
+        return False
+    dec[h, D_EP_N] = float(nb)
+    dec[h, D_EP_SUM] = s1
+    dec[h, D_EP_SUMSQ] = s2
+    dec[h, D_KIND_CORR] = corr
+    dec[h, D_KIND] = KIND_OSCILLATING if osc else KIND_STUCK
+    dec[h, D_BLK_IDX] = KIND_BLOCKS  # span closed
+    return True
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -827,8 +898,14 @@ def _decide(
     code = 0
     if dec[h, D_KIND] == KIND_PENDING and dec[h, D_BLK_IDX] < KIND_BLOCKS:
         if t - dec[h, D_KIND_T0] < cfg[CFG_KIND_WINDOW_S]:
-            _kind_add(dec, kbuf, h, t, defl, defl_var)
+            # the estimate is the probability-weighted mean of the filters that free the
+            # surface: while they hold less than the onset level of the probability, the data
+            # reject them and their estimate says nothing of the surface (a gap: the block
+            # history repeats the last block's mean)
+            if prob > cfg[CFG_ONSET_P]:
+                _kind_add(dec, kbuf, h, t, defl, defl_var)
         else:
+            _kind_pad(cfg, dec, kbuf, h, t)
             _judge_kind(cfg, dec, kbuf, h)
             dec[h, D_BLK_IDX] = KIND_BLOCKS  # span closed
             code = EV_CLASSIFIED
@@ -840,6 +917,7 @@ def _decide(
             dec[h, D_BELOW_T] = t
         if t - dec[h, D_BELOW_T] >= cfg[CFG_CLEAR_HOLD_S]:
             if dec[h, D_BLK_IDX] < KIND_BLOCKS:
+                _kind_pad(cfg, dec, kbuf, h, t)
                 _judge_kind(cfg, dec, kbuf, h)
                 dec[h, D_BLK_IDX] = KIND_BLOCKS
             return EV_CLEARED
@@ -1253,6 +1331,21 @@ def _bank_kernel(
             for h in range(ns):
                 if dec[h, D_ACTIVE] != 1.0:
                     dec[h, D_ABOVE_T] = np.nan
+            # a new detection cuts the open kind spans of the faults active before it
+            if n_active_after > n_active_before and cfg[CFG_KIND_CUT] != 0.0:
+                for g in range(ns):
+                    if dec[g, D_ACTIVE] != 1.0 or dec[g, D_DETECTED_T] != tk:
+                        continue
+                    t_cut = dec[g, D_ONSET_T] - KIND_CUT_MARGIN_S
+                    for h in range(ns):
+                        if (
+                            h != g
+                            and dec[h, D_ACTIVE] == 1.0
+                            and dec[h, D_DETECTED_T] != tk
+                            and cut_kind_span(cfg, dec, kbuf, h, t_cut)
+                        ):
+                            events = _write_event(events, n_ev, tk, EV_CLASSIFIED, dec, h)
+                            n_ev += 1
         row += ns
         samples[row, k] = nis0
         # health window

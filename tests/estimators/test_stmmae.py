@@ -815,6 +815,145 @@ def test_kind_correlation_separates_oscillation_from_noise_and_drift() -> None:
     assert math.isnan(kern.kind_correlation(t, kern.KIND_MIN_BLOCKS - 1))  # too short
 
 
+def _kind_span(config, values_deg, probs=None, dt=0.01):
+    """Detect at once and feed one surface's kind span a deflection history (deg; command 0,
+    ample evidence, probability ``probs`` per sample, 0.95 by default); return the codes and
+    the decision fields and block history."""
+    n = len(values_deg)
+    probs = [0.95] * n if probs is None else probs
+    cfg = config.kernel_vector
+    dec = np.zeros((1, kern.D_LEN))
+    for idx in kern.D_TIMES:
+        dec[0, idx] = np.nan
+    dec[0, kern.D_BLK_IDX] = -1.0
+    kbuf = np.zeros((1, kern.KIND_BLOCKS))
+    a_s = 1.0 - math.exp(-dt / config.deflection_smoothing_s)
+    a_c = 1.0 - math.exp(-dt / config.clear_smoothing_s)
+    codes = []
+    for k, (p, d) in enumerate(zip(probs, values_deg, strict=True)):
+        code = kern._decide(
+            cfg,
+            dec,
+            kbuf,
+            0,
+            k * dt,
+            dt if k else 0.0,
+            p,
+            1.0,
+            math.radians(d),
+            math.radians(1.0) ** 2,
+            0.0,
+            a_s,
+            a_c,
+            5.0,
+            False,
+        )
+        if code:
+            codes.append((round(k * dt, 2), code))
+    return codes, dec, kbuf
+
+
+def test_kind_span_skips_samples_the_data_reject() -> None:
+    """A stuck surface (8 deg) whose probability drops below the onset level for 0.5 s in
+    every second, while its estimate (of filters the data then reject) jumps to 20 deg: the
+    kind is judged on the samples with the probability above the onset level (stuck); taken
+    with every sample, the jumps read as a 1 s square wave (oscillating)."""
+    config = stmmae.parse_config({})
+    n = 700
+    rng = np.random.default_rng(1)
+    t = np.arange(n) * 0.01
+    low = (t > 0.5) & ((t % 1.0) > 0.5)
+    values = np.where(low, 20.0, 8.0) + 0.2 * rng.standard_normal(n)
+    probs = np.where(low, 0.01, 0.95)
+    codes, dec, _ = _kind_span(config, list(values), list(probs))
+    assert [c for _, c in codes] == [kern.EV_DETECTED, kern.EV_CLASSIFIED]
+    assert dec[0, kern.D_KIND] == kern.KIND_STUCK
+    assert kern.episode_mean(dec, 0) == pytest.approx(math.radians(8.0), abs=math.radians(0.2))
+    codes, dec, _ = _kind_span(config, list(values))  # the same history, probability high
+    assert dec[0, kern.D_KIND] == kern.KIND_OSCILLATING
+
+
+def test_kind_history_shortened_by_skipped_samples_is_still_judged() -> None:
+    """A surface whose probability falls below the onset level 0.5 s after its detection and
+    stays there (a detection the data no longer support): its history of 10 blocks is padded
+    with the last block's mean at the span's end and judged (stuck), not left pending."""
+    config = stmmae.parse_config({})
+    n = int(config.fault_kind_window_s / 0.01) + 50
+    probs = [0.95] * 50 + [0.2] * (n - 50)
+    values = [6.0 + 0.1 * math.sin(k) for k in range(n)]
+    codes, dec, _ = _kind_span(config, values, probs)
+    assert [c for _, c in codes] == [kern.EV_DETECTED, kern.EV_CLASSIFIED]
+    assert dec[0, kern.D_KIND] == kern.KIND_STUCK
+
+
+def test_kind_span_cut_at_another_fault_keeps_the_history_before_it() -> None:
+    """``cut_kind_span``: a stuck history of 3 s followed by 1 s of another fault's oscillation
+    leaking into the estimate is judged stuck on the 3 s before the cut (the whole history
+    reads as oscillating); a cut leaving less than half the kind window concludes an
+    oscillation but not "stuck" (the span then runs on); one leaving less than 1 s does
+    nothing."""
+    config = stmmae.parse_config({})
+    cfg = config.kernel_vector
+    dt = 0.01
+    t = np.arange(400) * dt
+    rng = np.random.default_rng(2)
+    leak = np.where(t >= 3.0, 8.0 * np.sign(np.sin(2 * np.pi * (t - 3.0) / 0.8 + 0.1)), 0.0)
+    values = 5.0 + 0.3 * rng.standard_normal(t.size) + leak
+    _, dec, kbuf = _kind_span(config, list(values))
+    assert dec[0, kern.D_KIND] == kern.KIND_PENDING  # the span (5 s) is still open
+    whole = kern.kind_correlation(kbuf[0], int(dec[0, kern.D_BLK_IDX]))
+    assert whole < config.oscillation_correlation
+    cut_dec, cut_buf = dec.copy(), kbuf.copy()
+    assert kern.cut_kind_span(cfg, cut_dec, cut_buf, 0, 3.0)
+    assert cut_dec[0, kern.D_KIND] == kern.KIND_STUCK
+    assert cut_dec[0, kern.D_BLK_IDX] == kern.KIND_BLOCKS  # span closed
+    assert kern.episode_mean(cut_dec, 0) == pytest.approx(math.radians(5.0), abs=math.radians(0.3))
+    # 2 s of a stuck history: too short to conclude "stuck" (the span stays open)
+    short_dec, short_buf = dec.copy(), kbuf.copy()
+    assert not kern.cut_kind_span(cfg, short_dec, short_buf, 0, 2.0)
+    assert short_dec[0, kern.D_KIND] == kern.KIND_PENDING
+    # 2 s of an oscillation: concluded
+    osc = 5.0 + 6.0 * np.sin(2 * np.pi * t / 0.6)
+    _, odec, obuf = _kind_span(config, list(osc))
+    assert kern.cut_kind_span(cfg, odec, obuf, 0, 2.0)
+    assert odec[0, kern.D_KIND] == kern.KIND_OSCILLATING
+    # under 1 s: nothing
+    tiny_dec, tiny_buf = dec.copy(), kbuf.copy()
+    assert not kern.cut_kind_span(cfg, tiny_dec, tiny_buf, 0, 0.9)
+
+
+def test_a_second_detection_cuts_the_first_faults_kind_span() -> None:
+    """Rudder stuck from 3 s, left aileron oscillating from 6.5 s (inside the rudder's 5 s kind
+    span): the rudder's kind is judged when the aileron is detected, on its history before
+    the aileron's onset (stuck, with the autocorrelation of a constant); without the cut it is
+    judged at the span's end on a history into which the aileron's oscillation leaked (an
+    autocorrelation near the oscillation level)."""
+    faults = (
+        SurfaceFault("rudder", 3.0, 30.0, "stuck", position_deg=7.7),
+        SurfaceFault(
+            "aileron_left", 6.5, 30.0, "sine", center_deg=0.0, amplitude_deg=6.0, period_s=1.0
+        ),
+    )
+    t, ch, _ = simulate_flight(12.0, faults=faults, seed=5)
+    found = {}
+    for cut in (True, False):
+        config = stmmae.parse_config({"fault_kind_cut": cut})
+        _, _, _, events, _ = run(config, t, ch)
+        det = {e.detail["component"]: e.t_s for e in events if e.kind == "fault_detected"}
+        cls = {e.detail["component"]: e for e in events if e.kind == "fault_classified"}
+        assert set(det) == {"rudder", "aileron_left"}
+        assert cls["aileron_left"].detail["fault_kind"] == "oscillating"
+        found[cut] = (det, cls["rudder"])
+    det, rudder = found[True]
+    assert rudder.t_s == det["aileron_left"]
+    assert rudder.detail["fault_kind"] == "stuck"
+    _, rudder_uncut = found[False]
+    assert rudder_uncut.t_s > det["aileron_left"]
+    corr_cut = rudder.detail["deflection_autocorrelation_min"]
+    corr_uncut = rudder_uncut.detail["deflection_autocorrelation_min"]
+    assert corr_cut > -0.35 and corr_uncut < corr_cut - 0.1
+
+
 ELEVATOR_FAULTS = {
     "stuck": SurfaceFault("elevator_left", 4.0, 30.0, "stuck", position_deg=-14.0),
     "oscillating": SurfaceFault(
