@@ -276,14 +276,15 @@ MAX_SUB = 256  # sub-segments per load segment in the prognosis
 
 
 # ----------------------------------------------------------------------------- model
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def taylor_order(theta: float, tol: float) -> int:
     """Smallest N >= 2 whose remainder bound of phi1 to order N is at most ``tol``.
 
     For ``||X|| <= theta`` the remainder ``sum_(j>N) X^j / (j+1)!`` is bounded by the tail
     ``sum_(j>N) theta^j / (j+1)! <= theta^(N+1) / (N+2)! / (1 - theta / (N+3))`` (each term at
-    most theta / (N+3) times the one before), for theta < N + 3."""
-    term = theta * theta * theta / 24.0  # N = 2: theta^3 / 4!
+    most theta / (N+3) times the one before), for theta < N + 3. Inlined into the filter's loop
+    (a call there makes the compiler store every live value around it)."""
+    term = theta * theta * theta * RECIP[24]  # N = 2: theta^3 / 4!
     order = 2
     while order < MAX_ORDER and not term <= tol * (1.0 - theta * RECIP[order + 3]):
         order += 1
@@ -773,10 +774,13 @@ def _ekf_kernel(
     plant-calibration segment), 0 when it ran to the end, -1 on times out of order."""
     n = t.shape[0]
     bins = int(cfg[CFG_OBS_BINS])
+    t_prev = t[start] if n > start else 0.0
     for k in range(start + 1, n):
-        if not t[k] > t[k - 1]:
+        t_k = t[k]
+        if not t_k > t_prev:
             out[:] = np.nan
             return np.empty((0, WIN_LEN)), np.empty((0, EV_LEN)), np.empty((0, 1)), -1
+        t_prev = t_k
     stop = 0
     hw = cfg[CFG_HEALTH_WINDOW]
     windows = np.empty((int((n - start) // hw) + 1, WIN_LEN))
