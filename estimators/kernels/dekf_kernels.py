@@ -286,7 +286,7 @@ def taylor_order(theta: float, tol: float) -> int:
     (a call there makes the compiler store every live value around it)."""
     term = theta * theta * theta * RECIP[24]  # N = 2: theta^3 / 4!
     order = 2
-    while order < MAX_ORDER and not term <= tol * (1.0 - theta * RECIP[order + 3]):
+    while order < MAX_ORDER and term > tol * (1.0 - theta * RECIP[order + 3]):
         order += 1
         term *= theta * RECIP[order + 2]
     return order
