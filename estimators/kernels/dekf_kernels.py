@@ -260,10 +260,12 @@ OUT_LEN = 19
 # fused multiply-add contraction only (no reassociation, no assumptions on NaN or infinity):
 # the hot loops are chains of products and sums
 FMA = {"contract"}
-THETA_MAX = 0.5  # largest ||G dt||_1 before scaling and squaring
+THETA_MAX = 0.5  # largest balanced ||G dt||_1 before scaling and squaring
 MAX_ORDER = 24
 # 1 / j for j = 0 .. MAX_ORDER + 2 (index 0 unused): the Horner steps multiply instead of divide
-RECIP = np.array([0.0] + [1.0 / j for j in range(1, MAX_ORDER + 3)])
+RECIP = np.array([0.0] + [1.0 / j for j in range(1, MAX_ORDER + 4)])
+#: 1 / (j + 1)! for j = 0 .. MAX_ORDER: the coefficients of phi1
+INV_FACT1 = np.array([1.0 / math.factorial(j + 1) for j in range(MAX_ORDER + 1)])
 # cycle jumps of the prognosis: only where ln(alpha) changes by at most this per period (the
 # modified equation is then accurate to O(delta^2) relative), over at least this many periods,
 # and stopping this many periods before the threshold
@@ -274,12 +276,17 @@ MAX_SUB = 256  # sub-segments per load segment in the prognosis
 
 
 # ----------------------------------------------------------------------------- model
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def taylor_order(theta: float, tol: float) -> int:
-    """Smallest N >= 2 with theta^(N+1) / (N+2)! <= tol (remainder bound of phi1 to order N)."""
-    term = theta * theta * theta / 24.0  # N = 2: theta^3 / 4!
+    """Smallest N >= 2 whose remainder bound of phi1 to order N is at most ``tol``.
+
+    For ``||X|| <= theta`` the remainder ``sum_(j>N) X^j / (j+1)!`` is bounded by the tail
+    ``sum_(j>N) theta^j / (j+1)! <= theta^(N+1) / (N+2)! / (1 - theta / (N+3))`` (each term at
+    most theta / (N+3) times the one before), for theta < N + 3. Inlined into the filter's loop
+    (a call there makes the compiler store every live value around it)."""
+    term = theta * theta * theta * RECIP[24]  # N = 2: theta^3 / 4!
     order = 2
-    while term > tol and order < MAX_ORDER:
+    while order < MAX_ORDER and term > tol * (1.0 - theta * RECIP[order + 3]):
         order += 1
         term *= theta * RECIP[order + 2]
     return order
@@ -290,22 +297,24 @@ def discretize(
     cfg: FloatArray, w1: float, w2: float, al: float, m: float, u: float, dt: float
 ) -> tuple[
     float, float, float, float, float, float, float, float, float,
-    float, float, float, float, float, float, float, float, float, float,
+    float, float, float, float, float, float, float, float, float, float, float, float,
 ]:  # fmt: skip
     """:func:`discretize_plant` with the plant and the series settings of ``cfg``."""
+    bal1 = math.sqrt(cfg[CFG_INV_J2] / cfg[CFG_INV_J1])
     return discretize_plant(
         cfg[CFG_R1], cfg[CFG_R2], cfg[CFG_B1], cfg[CFG_B2], cfg[CFG_INV_J1], cfg[CFG_INV_J2],
-        cfg[CFG_KM], cfg[CFG_F44], cfg[CFG_EXPM_TOL], w1, w2, al, m, u, dt,
+        cfg[CFG_KM], cfg[CFG_F44], cfg[CFG_EXPM_TOL], bal1, 1.0 / bal1, w1, w2, al, m, u, dt,
     )  # fmt: skip
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=FMA, inline="always")
 def discretize_plant(
     r1: float, r2: float, b1: float, b2: float, ij1: float, ij2: float, km: float, f44: float,
-    tol: float, w1: float, w2: float, al: float, m: float, u: float, dt: float,
+    tol: float, bal1: float, ibal1: float, w1: float, w2: float, al: float, m: float, u: float,
+    dt: float,
 ) -> tuple[
     float, float, float, float, float, float, float, float, float,
-    float, float, float, float, float, float, float, float, float, float,
+    float, float, float, float, float, float, float, float, float, float, float, float,
 ]:  # fmt: skip
     """Local-linearization step of the model from the posterior ``[w1, w2, al, m]``.
 
@@ -318,18 +327,22 @@ def discretize_plant(
         c4    = int_0^dt expm(G (dt - s)) g exp(F44 s) ds
         gb    = Gamma B                         (how a current error over the step moves x)
 
-    ``phi1(X) = sum_j X^j / (j+1)!`` is evaluated by Horner's rule to the order whose remainder
-    bound is below ``tol`` (``taylor_order``), after halving ``dt`` s times if ``||G dt||_1``
-    exceeds ``THETA_MAX``; ``E`` and ``Gamma`` are then doubled back (``Gamma(2h) = (I + E(h))
-    Gamma(h)``, ``E(2h) = E(h)^2``).
+    ``phi1(X) = sum_j X^j / (j+1)!`` is evaluated to the smallest order N whose remainder
+    bound (``taylor_order``, on the 1-norm of the balanced ``D^-1 X D`` below) is at most ``tol
+    min(d1, 1 / d1)``, so that each entry of the speed block of phi1 is within ``tol``, after
+    halving ``dt`` s times if that norm exceeds ``THETA_MAX``; ``E`` and ``Gamma`` are then
+    doubled back (``Gamma(2h) = (I + E(h)) Gamma(h)``, ``E(2h) = E(h)^2``). The polynomial is
+    evaluated by the Paterson-Stockmeyer scheme in ``X^2`` (about N / 2 3x3 products, against
+    N - 1 for Horner's rule in X).
 
     The plant is ``r1, r2, B1, B2, 1 / J1, 1 / J2, Km``; passed as numbers (not the
     configuration vector) so that the filter's loop, into which this is inlined, keeps them in
-    registers and passes no array.
+    registers and passes no array. ``bal1 = sqrt(J1 / J2)`` (``d1``) and ``ibal1 = 1 / bal1``
+    are the caller's, computed once per batch.
 
     Returns:
         (E00, E01, E02, E10, E11, E12, E20, E21, E22, c40, c41, c42, e44, dx0, dx1, dx2, gb0,
-        gb1, gb2).
+        gb1, gb2, N, s): N the series order, s the halvings of dt (the filter ignores both).
     """
     dv = r1 * w1 - r2 * w2
     # Jacobian, seed eq. 19
@@ -347,14 +360,18 @@ def discretize_plant(
     v0 = (-al * r1 * dv - b1 * w1 + km * u) * ij1
     v1 = (al * r2 * dv - b2 * w2) * ij2
     v2 = g22 * al
-    # The order is chosen from the 1-norm of the balanced matrix D^-1 G D, D = diag(1, 1, b),
-    # b^2 = (|g20| + |g21|) / (|g02| + |g12|): the truncated series commutes with the
-    # similarity, so its remainder is bounded entry-wise relative to the balanced scales and the
-    # large alpha column (units of speed per unit alpha) does not inflate the order.
-    col_a = abs(g02) + abs(g12)
-    row_a = abs(g20) + abs(g21)
+    # The order is chosen from the 1-norm of the balanced matrix D^-1 G D, D = diag(1, d1, b):
+    # d1 = sqrt(J1 / J2) (``bal1``, the kinetic-energy scaling sqrt(J) w, in which the speed
+    # coupling alpha r1 r2 / sqrt(J1 J2) is symmetric) and b^2 = (|g20| + d1 |g21|) / (|g02| +
+    # |g12| / d1). The truncated series commutes with the similarity: R(X) = D R(D^-1 X D) D^-1
+    # for its remainder R, so an entry of the speed block is off by at most max(d1, 1 / d1)
+    # times the balanced bound, which is therefore held below tol min(d1, 1 / d1); neither the
+    # light motor's large coupling column nor the alpha column (units of speed per unit alpha)
+    # inflates the order.
+    col_a = abs(g02) + abs(g12) * ibal1
+    row_a = abs(g20) + abs(g21) * bal1
     bal = math.sqrt(row_a * col_a)
-    norm = max(abs(g00) + abs(g10), abs(g01) + abs(g11), abs(g22)) + bal
+    norm = max(abs(g00) + abs(g10) * ibal1, abs(g01) * bal1 + abs(g11), abs(g22)) + bal
     theta = norm * dt
     s = 0
     h = dt
@@ -362,7 +379,8 @@ def discretize_plant(
         s = int(math.ceil(math.log2(theta / THETA_MAX)))
         h = dt / 2.0**s
         theta = norm * h
-    order = taylor_order(theta, tol)
+    tol_bal = tol * min(bal1, ibal1)
+    order = taylor_order(theta, tol_bal)
     x00 = g00 * h
     x01 = g01 * h
     x02 = g02 * h
@@ -372,29 +390,60 @@ def discretize_plant(
     x20 = g20 * h
     x21 = g21 * h
     x22 = g22 * h
-    # Horner: Y = I + X / (N+1), then Y = I + X Y / (j+1) for j = N-1 .. 1
-    c = RECIP[order + 1]
-    y00 = 1.0 + x00 * c
-    y01 = x01 * c
-    y02 = x02 * c
-    y10 = x10 * c
-    y11 = 1.0 + x11 * c
-    y12 = x12 * c
-    y20 = x20 * c
-    y21 = x21 * c
-    y22 = 1.0 + x22 * c
-    for j in range(order - 1, 0, -1):
-        c = RECIP[j + 1]
-        n00 = 1.0 + (x00 * y00 + x01 * y10 + x02 * y20) * c
-        n01 = (x00 * y01 + x01 * y11 + x02 * y21) * c
-        n02 = (x00 * y02 + x01 * y12 + x02 * y22) * c
-        n10 = (x10 * y00 + x11 * y10 + x12 * y20) * c
-        n11 = 1.0 + (x10 * y01 + x11 * y11 + x12 * y21) * c
-        n12 = (x10 * y02 + x11 * y12 + x12 * y22) * c
-        n20 = (x20 * y00 + x21 * y10 + x22 * y20) * c
-        n21 = (x20 * y01 + x21 * y11 + x22 * y21) * c
-        n22 = 1.0 + (x20 * y02 + x21 * y12 + x22 * y22) * c
+    # phi1(X) = sum_j c_j X^j, c_j = 1 / (j+1)!, by Paterson-Stockmeyer in X2 = X^2: groups
+    # (c_i I + c_(i+1) X) by Horner in X2, one 3x3 product per two orders (Horner in X: one
+    # per order)
+    xx00 = x00 * x00 + x01 * x10 + x02 * x20
+    xx01 = x00 * x01 + x01 * x11 + x02 * x21
+    xx02 = x00 * x02 + x01 * x12 + x02 * x22
+    xx10 = x10 * x00 + x11 * x10 + x12 * x20
+    xx11 = x10 * x01 + x11 * x11 + x12 * x21
+    xx12 = x10 * x02 + x11 * x12 + x12 * x22
+    xx20 = x20 * x00 + x21 * x10 + x22 * x20
+    xx21 = x20 * x01 + x21 * x11 + x22 * x21
+    xx22 = x20 * x02 + x21 * x12 + x22 * x22
+    if order % 2 == 0:
+        # top group c_(N-2) I + c_(N-1) X + c_N X2 (no product)
+        i = order - 4
+        ca = INV_FACT1[order - 2]
+        cb = INV_FACT1[order - 1]
+        cz = INV_FACT1[order]
+        y00 = ca + cb * x00 + cz * xx00
+        y01 = cb * x01 + cz * xx01
+        y02 = cb * x02 + cz * xx02
+        y10 = cb * x10 + cz * xx10
+        y11 = ca + cb * x11 + cz * xx11
+        y12 = cb * x12 + cz * xx12
+        y20 = cb * x20 + cz * xx20
+        y21 = cb * x21 + cz * xx21
+        y22 = ca + cb * x22 + cz * xx22
+    else:
+        i = order - 3
+        ca = INV_FACT1[order - 1]
+        cb = INV_FACT1[order]
+        y00 = ca + cb * x00
+        y01 = cb * x01
+        y02 = cb * x02
+        y10 = cb * x10
+        y11 = ca + cb * x11
+        y12 = cb * x12
+        y20 = cb * x20
+        y21 = cb * x21
+        y22 = ca + cb * x22
+    while i >= 0:
+        ca = INV_FACT1[i]
+        cb = INV_FACT1[i + 1]
+        n00 = ca + cb * x00 + (xx00 * y00 + xx01 * y10 + xx02 * y20)
+        n01 = cb * x01 + (xx00 * y01 + xx01 * y11 + xx02 * y21)
+        n02 = cb * x02 + (xx00 * y02 + xx01 * y12 + xx02 * y22)
+        n10 = cb * x10 + (xx10 * y00 + xx11 * y10 + xx12 * y20)
+        n11 = ca + cb * x11 + (xx10 * y01 + xx11 * y11 + xx12 * y21)
+        n12 = cb * x12 + (xx10 * y02 + xx11 * y12 + xx12 * y22)
+        n20 = cb * x20 + (xx20 * y00 + xx21 * y10 + xx22 * y20)
+        n21 = cb * x21 + (xx20 * y01 + xx21 * y11 + xx22 * y21)
+        n22 = ca + cb * x22 + (xx20 * y02 + xx21 * y12 + xx22 * y22)
         y00, y01, y02, y10, y11, y12, y20, y21, y22 = n00, n01, n02, n10, n11, n12, n20, n21, n22
+        i -= 2
     # E = I + X Y, Gamma = h Y
     e00 = 1.0 + x00 * y00 + x01 * y10 + x02 * y20
     e01 = x00 * y01 + x01 * y11 + x02 * y21
@@ -424,12 +473,8 @@ def discretize_plant(
         z00 = x00 - f44 * h
         z11 = x11 - f44 * h
         z22 = x22 - f44 * h
-        norm_z = max(
-            abs(z00) + abs(x10) + abs(x20),
-            abs(x01) + abs(z11) + abs(x21),
-            abs(x02) + abs(x12) + abs(z22),
-        )
-        order_z = taylor_order(norm_z, tol)
+        # ||D^-1 (G - F44 I) h D||_1 <= theta + |F44| h, in the same balanced scales
+        order_z = taylor_order(theta + abs(f44) * h, tol_bal)
         c = RECIP[order_z + 1]
         k0 = x02 * f34 * c
         k1 = x12 * f34 * c
@@ -482,7 +527,7 @@ def discretize_plant(
     kb = km * ij1
     return (
         e00, e01, e02, e10, e11, e12, e20, e21, e22, k0, k1, k2, e44, dx0, dx1, dx2,
-        q00 * kb, q10 * kb, q20 * kb,
+        q00 * kb, q10 * kb, q20 * kb, float(order), float(s),
     )  # fmt: skip
 
 
@@ -729,10 +774,13 @@ def _ekf_kernel(
     plant-calibration segment), 0 when it ran to the end, -1 on times out of order."""
     n = t.shape[0]
     bins = int(cfg[CFG_OBS_BINS])
+    t_prev = t[start] if n > start else 0.0
     for k in range(start + 1, n):
-        if not t[k] > t[k - 1]:
+        t_k = t[k]
+        if not t_k > t_prev:
             out[:] = np.nan
             return np.empty((0, WIN_LEN)), np.empty((0, EV_LEN)), np.empty((0, 1)), -1
+        t_prev = t_k
     stop = 0
     hw = cfg[CFG_HEALTH_WINDOW]
     windows = np.empty((int((n - start) // hw) + 1, WIN_LEN))
@@ -774,6 +822,8 @@ def _ekf_kernel(
     memory = cfg[CFG_ADAPT_MEMORY]
     inv_memory = 1.0 / memory if memory > 0.0 else 0.0
     dt_timing = np.nan  # the spacing (timing / dt)^2 was last computed for
+    g_min_of = np.nan  # the median gain up_min and down_min were last computed for
+    up_min = down_min = 1.0
     timing2 = 0.0
     gate1 = cfg[CFG_GATE]
     gate2 = cfg[CFG_GATE + 1]
@@ -786,6 +836,8 @@ def _ekf_kernel(
     fric2 = cfg[CFG_B2]
     ij1 = cfg[CFG_INV_J1]
     ij2 = cfg[CFG_INV_J2]
+    bal1 = math.sqrt(ij2 / ij1)  # speed scaling of the series order's norm (discretize_plant)
+    ibal1 = 1.0 / bal1
     km = cfg[CFG_KM]
     f44 = cfg[CFG_F44]
     expm_tol = cfg[CFG_EXPM_TOL]
@@ -966,9 +1018,10 @@ def _ekf_kernel(
                 ) = edge_moments(cfg, x0, x1, x2, m_wear, dt)  # fmt: skip
             (
                 e00, e01, e02, e10, e11, e12, e20, e21, e22, c0, c1, c2, e44, dx0, dx1, dx2,
-                gb0, gb1, gb2,
+                gb0, gb1, gb2, _, _,
             ) = discretize_plant(
-                r1, r2, fric1, fric2, ij1, ij2, km, f44, expm_tol, x0, x1, x2, m_wear, u_step, dt
+                r1, r2, fric1, fric2, ij1, ij2, km, f44, expm_tol, bal1, ibal1, x0, x1, x2, m_wear,
+                u_step, dt,
             )  # fmt: skip
             ph00 = e00
             ph01 = e01
@@ -1060,8 +1113,11 @@ def _ekf_kernel(
         # q_j <- max(0, q_j + d (min(e_j^2, gate S_jj) - S_jj)), d = max(1 / (n + 2), dt / memory).
         if memory > 0.0:
             g_min = 2.0 * (tk - t_last) * inv_memory if predicted else 1.0
-            up_min = 1.0 + g_min
-            down_min = 1.0 / up_min
+            if g_min != g_min_of:
+                # the factors depend on the spacing only: recomputed when it changes
+                up_min = 1.0 + g_min
+                down_min = 1.0 / up_min
+                g_min_of = g_min
             if have0:
                 if math.isfinite(h02):
                     a3 = abs(y0_raw - 3.0 * h00 + 3.0 * h01 - h02)

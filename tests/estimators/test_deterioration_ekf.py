@@ -171,10 +171,12 @@ def test_matches_filterpy_sample_by_sample(
     missing speeds (each alone and both) and currents, and uneven sample spacing.
 
     Tolerances: the Taylor series of the discretization stops at a remainder bound of 1e-9
-    (relative, in balanced scales; the default ``expm_tol``) and both sides round differently.
-    Measured over 2500 steps: states within 3e-9 of their own standard deviation, innovations within 2e-9 of sqrt(S)
-    (an innovation is a difference of two ~100 rad/s numbers, so its relative error is large
-    where it is near 0), covariances within 1e-13 relative. The bounds leave a factor >= 30."""
+    (the default ``expm_tol``, per entry of the speed block, relative to balanced scales
+    elsewhere) and both sides round differently. Measured over 2500 steps: speeds within 1.7e-12
+    relative, alpha and m within 1.1e-6 of their own standard deviation, innovations within 6e-7
+    of sqrt(S) (an innovation is a difference of two ~100 rad/s numbers, so its relative error
+    is large where it is near 0), NIS within 5e-6 relative, covariances within 9e-11 relative.
+    The bounds leave a factor >= 10."""
     t, ch, _ = simulate_friction_drive(2.5, 1000.0, seed=seed, m_changes=[(1.5, 0.02)])
     rng = np.random.default_rng(seed)
     if irregular:
@@ -187,20 +189,20 @@ def test_matches_filterpy_sample_by_sample(
     )
     state, s, _, _, _ = run(config, t, ch)
     ref = filterpy_reference(config, t, ch)
-    np.testing.assert_allclose(s["w1"], ref["w1"], rtol=1e-13)
+    np.testing.assert_allclose(s["w1"], ref["w1"], rtol=2e-11)
     sig_alpha = np.sqrt(ref["p22"])
     sig_m = np.sqrt(ref["p33"])
-    assert np.max(np.abs(s["alpha"] - ref["alpha"]) / sig_alpha) < 1e-7
-    assert np.max(np.abs(s["m"] - ref["m"]) / sig_m) < 1e-7
+    assert np.max(np.abs(s["alpha"] - ref["alpha"]) / sig_alpha) < 1e-5
+    assert np.max(np.abs(s["m"] - ref["m"]) / sig_m) < 1e-5
     for name, key in (("innovation_w1", "e1"), ("innovation_w2", "e2")):
         np.testing.assert_array_equal(np.isnan(s[name]), np.isnan(ref[key]))
         sd = s[f"{name}_3sigma"] / 3.0
-        assert np.nanmax(np.abs(s[name] - ref[key]) / sd) < 1e-7
-    np.testing.assert_allclose(s["nis"], ref["nis"], rtol=1e-6, atol=1e-8)
-    np.testing.assert_allclose((s["alpha_3sigma"] / 3) ** 2, ref["p22"], rtol=1e-11)
-    np.testing.assert_allclose((s["m_3sigma"] / 3) ** 2, ref["p33"], rtol=1e-11)
+        assert np.nanmax(np.abs(s[name] - ref[key]) / sd) < 1e-5
+    np.testing.assert_allclose(s["nis"], ref["nis"], rtol=5e-5, atol=1e-8)
+    np.testing.assert_allclose((s["alpha_3sigma"] / 3) ** 2, ref["p22"], rtol=1e-9)
+    np.testing.assert_allclose((s["m_3sigma"] / 3) ** 2, ref["p33"], rtol=1e-9)
     scale = np.sqrt(np.outer(np.diag(ref["P"]), np.diag(ref["P"])))
-    np.testing.assert_allclose(state.P / scale, ref["P"] / scale, atol=1e-11)
+    np.testing.assert_allclose(state.P / scale, ref["P"] / scale, atol=1e-9)
     # both NaN: predict only, so no innovation
     both = np.isnan(ch["motor_speed"]) & np.isnan(ch["wheel_speed"])
     assert np.all(np.isnan(s["nis"][both]))
@@ -238,6 +240,58 @@ def test_taylor_discretization_matches_expm(tol: float) -> None:
             np.testing.assert_allclose(got[13:16], dx[:3], rtol=rtol, atol=rtol * np.abs(dx).max())
             gb = gamma[:3, 0] * PARAMS.km_nm_a / PARAMS.j1_kg_m2
             np.testing.assert_allclose(got[16:19], gb, rtol=rtol, atol=rtol * np.abs(gb).max())
+
+
+def _tail_bound(theta: float, order: int) -> float:
+    """Remainder bound of phi1 truncated at ``order`` for ||X|| <= theta (taylor_order's)."""
+    return theta ** (order + 1) / math.factorial(order + 2) / (1.0 - theta / (order + 3))
+
+
+@pytest.mark.parametrize("tol", [1e-5, 1e-7, 1e-9])
+def test_series_order_meets_its_balanced_bound(tol: float) -> None:
+    """The series order against a high-order reference (scipy's expm) at steps that need no
+    halving: with D = diag(1, sqrt(J1 / J2), b) and theta the 1-norm of D^-1 G dt D, the order
+    N meets theta^(N+1) / (N+2)! / (1 - theta / (N+3)) <= tol min(d1, 1 / d1); E is within
+    theta times that bound in the balanced scales and each speed entry of Gamma / dt (its first
+    column, the current's) within tol. At the bench's operating points (1 kHz, alpha near 10)
+    the order is below the one the plain 1-norm would need at tol."""
+    rng = np.random.default_rng(11)
+    cfg = seed_config({"expm_tol": tol}).kernel_vector
+    d1 = math.sqrt(cfg[kern.CFG_INV_J2] / cfg[kern.CFG_INV_J1])
+    tol_bal = tol * min(d1, 1.0 / d1)
+    kb = PARAMS.km_nm_a / PARAMS.j1_kg_m2
+    states = [
+        (np.array([30.0, 2.7, 9.9, 5e-4]), 0.0, 1e-3),
+        (np.array([90.0, 8.0, 10.0, 0.01]), 20.0, 1e-3),
+    ]
+    for _ in range(40):
+        x = np.array([rng.uniform(0, 150), rng.uniform(0, 13), rng.uniform(0.5, 20), 0.01])
+        states.append((x, rng.uniform(-20, 20), 10 ** rng.uniform(-4, -2.5)))
+    for i, (x, u, dt) in enumerate(states):
+        got = kern.discretize(cfg, *x, u, dt)
+        order, halvings = int(got[19]), int(got[20])
+        if halvings:
+            continue
+        _, jac = _model(x, u, 0.0)
+        g = jac[:3, :3]
+        b = math.sqrt(
+            (abs(g[2, 0]) + d1 * abs(g[2, 1])) / (abs(g[0, 2]) + abs(g[1, 2]) / d1)
+        )
+        d = np.diag([1.0, d1, b])
+        di = np.linalg.inv(d)
+        theta = np.abs(di @ g @ d * dt).sum(axis=0).max()
+        assert _tail_bound(theta, order) <= tol_bal
+        e_ref = expm(g * dt)
+        aug = np.zeros((6, 6))
+        aug[:3, :3] = g * dt
+        aug[:3, 3:] = np.eye(3) * dt
+        gamma = expm(aug)[:3, 3:]
+        err_e = np.abs(di @ (np.reshape(got[:9], (3, 3)) - e_ref) @ d).sum(axis=0).max()
+        assert err_e <= theta * tol_bal + 1e-14
+        err_g = np.abs(np.asarray(got[16:18]) / kb - gamma[:2, 0]) / dt
+        assert np.all(err_g <= tol + 1e-14)
+        if i < 2:
+            assert order < kern.taylor_order(np.abs(g * dt).sum(axis=0).max(), tol)
 
 
 # ----------------------------------------------------------------------------- seed scenario
