@@ -314,9 +314,10 @@ class Processor:
             else:
                 with self.db.write(durable=False) as s:
                     results, left = self._apply_locked(s, pks, t0, errors, idle, alone)
-                    if self.applied_channel is not None:
-                        for res in results:
-                            self._announce(s, res)
+                    if self.applied_channel is not None and results:
+                        # One statement for the group's notifications (one per stream, in order).
+                        repository.notify_many(s, self.applied_channel,
+                                               [p for res in results for p in self._announcements(s, res)])
         except _StreamFailed:  # the one stream's error (in errors): its transaction is rolled back
             results.clear()
         except Exception as commit_exc:  # the commit failed: no stream of the group was applied
@@ -543,15 +544,15 @@ class Processor:
         for pk in pending:
             self._recheck_at[pk] = due
 
-    def _announce(self, session: Session, res: ApplyResult) -> None:
-        """NOTIFY the apply (its mark and fleet events) inside its transaction."""
+    def _announcements(self, session: Session, res: ApplyResult) -> list[str]:
+        """The NOTIFY payloads of an apply: its mark and its fleet events, split to fit."""
         meta = self._stream_meta(res.actuator_pk, session)
         events = fleet_events(meta, res)
-        for chunk in _chunks(events, NOTIFY_MAX_BYTES):
-            payload = {"o": self.origin, "pk": res.actuator_pk, "seq": res.last_applied_seq, "ev": chunk}
-            repository.notify(
-                session, self.applied_channel or "", orjson.dumps(payload, option=orjson.OPT_SERIALIZE_NUMPY).decode()
-            )
+        return [
+            orjson.dumps({"o": self.origin, "pk": res.actuator_pk, "seq": res.last_applied_seq, "ev": chunk},
+                         option=orjson.OPT_SERIALIZE_NUMPY).decode()
+            for chunk in _chunks(events, NOTIFY_MAX_BYTES)
+        ]
 
     def _replay(self, actuator_pk: int, exc: StateUnreadable) -> bool:
         """Replay the estimator whose state is unreadable; True when done (apply again)."""

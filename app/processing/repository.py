@@ -259,6 +259,18 @@ def notify(session: Session, channel: str, payload: str) -> None:
     session.execute(text("SELECT pg_notify(:channel, :payload)"), {"channel": channel, "payload": payload})
 
 
+def notify_many(session: Session, channel: str, payloads: Sequence[str]) -> None:
+    """PostgreSQL ``NOTIFY`` of several payloads on one channel, in this order, in one statement
+    (delivered when, and only if, this transaction commits)."""
+    if payloads:
+        session.execute(_NOTIFY_MANY, {"channel": channel, "payloads": list(payloads)})
+
+
+_NOTIFY_MANY = text(
+    "SELECT pg_notify(:channel, p) FROM unnest(CAST(:payloads AS text[])) WITH ORDINALITY AS t(p, i) ORDER BY i"
+)
+
+
 def notification_scope(session: Session) -> str:
     """The database and schema this session works in (notification channels are per database,
     not per schema: two schemas on one server must not hear each other)."""
