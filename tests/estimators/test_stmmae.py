@@ -666,14 +666,9 @@ def test_config_model_schema_and_named_state_parts() -> None:
 
 
 # ----------------------------------------------------------------------------- decision logic
-def _decide_run(
-    config, probs, defl_deg, cmd_deg, llrs, dt=0.01, others_active=False, defl_std_deg=0.57
-):
-    """Feed one surface's decision logic a sequence of (probability, deflection, command,
-    log-likelihood ratio) samples (``others_active``: another surface is in fault;
-    ``defl_std_deg``: posterior std of the deflection estimate); return the codes raised and
-    the decision fields."""
-    cfg = config.kernel_vector
+def _decision_start(config, dt):
+    """One surface's decision state as a stream starts it (no fault, no kind history), the
+    kernel's configuration vector, and the smoothing gains at sample period ``dt``."""
     dec = np.zeros((1, kern.D_LEN))
     for idx in kern.D_TIMES:
         dec[0, idx] = np.nan
@@ -681,6 +676,23 @@ def _decide_run(
     kbuf = np.zeros((1, kern.KIND_BLOCKS))
     a_s = 1.0 - math.exp(-dt / config.deflection_smoothing_s)
     a_c = 1.0 - math.exp(-dt / config.clear_smoothing_s)
+    return config.kernel_vector, dec, kbuf, a_s, a_c
+
+
+def _decide_run(
+    config, probs, defl_deg, cmd_deg, llrs, dt=0.01, others_active=False, defl_std_deg=0.57
+):
+    """Feed one surface's decision logic a sequence of (probability, deflection, command,
+    log-likelihood ratio) samples (``others_active``: another surface is in fault;
+    ``defl_std_deg``: posterior std of the deflection estimate); return the codes raised and
+    the decision fields."""
+    codes, dec, _ = _decide_steps(config, probs, defl_deg, cmd_deg, llrs, dt, others_active, defl_std_deg)
+    return codes, dec
+
+
+def _decide_steps(config, probs, defl_deg, cmd_deg, llrs, dt, others_active, defl_std_deg):
+    """:func:`_decide_run`, also returning the kind span's block history."""
+    cfg, dec, kbuf, a_s, a_c = _decision_start(config, dt)
     codes = []
     for k, (p, d, c, llr) in enumerate(zip(probs, defl_deg, cmd_deg, llrs, strict=True)):
         code = kern._decide(
@@ -704,7 +716,7 @@ def _decide_run(
             codes.append((round(k * dt, 2), code))
         if code == kern.EV_CLEARED:
             kern.reset_after_clearance(dec, 0)
-    return codes, dec
+    return codes, dec, kbuf
 
 
 def test_detection_needs_likelihood_ratio_evidence_over_the_hold() -> None:
@@ -821,36 +833,7 @@ def _kind_span(config, values_deg, probs=None, dt=0.01):
     the decision fields and block history."""
     n = len(values_deg)
     probs = [0.95] * n if probs is None else probs
-    cfg = config.kernel_vector
-    dec = np.zeros((1, kern.D_LEN))
-    for idx in kern.D_TIMES:
-        dec[0, idx] = np.nan
-    dec[0, kern.D_BLK_IDX] = -1.0
-    kbuf = np.zeros((1, kern.KIND_BLOCKS))
-    a_s = 1.0 - math.exp(-dt / config.deflection_smoothing_s)
-    a_c = 1.0 - math.exp(-dt / config.clear_smoothing_s)
-    codes = []
-    for k, (p, d) in enumerate(zip(probs, values_deg, strict=True)):
-        code = kern._decide(
-            cfg,
-            dec,
-            kbuf,
-            0,
-            k * dt,
-            dt if k else 0.0,
-            p,
-            1.0,
-            math.radians(d),
-            math.radians(1.0) ** 2,
-            0.0,
-            a_s,
-            a_c,
-            5.0,
-            False,
-        )
-        if code:
-            codes.append((round(k * dt, 2), code))
-    return codes, dec, kbuf
+    return _decide_steps(config, probs, values_deg, [0.0] * n, [5.0] * n, dt, False, 1.0)
 
 
 def test_kind_span_skips_samples_the_data_reject() -> None:
