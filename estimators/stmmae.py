@@ -334,6 +334,13 @@ class StmmaeConfig(EstimatorConfigModel):
         "its onset (less 0.5 s): their kind is judged on the history before the new fault "
         "began, when at least 1 s of it is left",
     )
+    fault_kind_twin_correction: bool = Field(
+        True,
+        description="while another surface is in fault and judged stuck, and the filter "
+        "freeing both anticorrelates their deflection estimates (below -0.5: only their sum is "
+        "well determined, as for two halves of a split surface), a fault's kind history "
+        "records its estimate plus the other's estimate less its stuck position",
+    )
     deflection_limit_deg: Number = Field(
         30.0, gt=0.0, le=180.0, description="clip of the deflection estimate, deg"
     )
@@ -504,6 +511,7 @@ def _kernel_vector(config: StmmaeConfig) -> FloatArray:
     cfg[kern.CFG_KIND_WINDOW_S] = config.fault_kind_window_s
     cfg[kern.CFG_REBASE] = 1.0 if config.rebase_on_detection else 0.0
     cfg[kern.CFG_KIND_CUT] = 1.0 if config.fault_kind_cut else 0.0
+    cfg[kern.CFG_KIND_TWIN] = 1.0 if config.fault_kind_twin_correction else 0.0
     cfg[kern.CFG_CLEAR_DEFL] = math.radians(config.clear_deflection_deg)
     cfg[kern.CFG_CLEAR_SMOOTH_S] = config.clear_smoothing_s
     cfg[kern.CFG_MIN_LLR] = config.min_log_likelihood_ratio
@@ -524,6 +532,34 @@ def hypothesis_members(config: StmmaeConfig) -> tuple[tuple[int, ...], ...]:
     if config.pair_hypotheses:
         out += [(i, j) for i in range(s) for j in range(i + 1, s)]
     return tuple(out)
+
+
+def _collinearity(
+    phi: FloatArray, h: FloatArray, r: FloatArray, slot_surface: IntArray, n: int, ns: int
+) -> FloatArray:
+    """Cosine between the surfaces' effects on the measurements, each whitened by the
+    measurement noise (``R^-1/2 H Phi^k e_slot``, ``k = 1..COLLINEAR_STEPS``, stacked), taken from
+    the pair filter freeing both: near 1 when the data determine mainly a combination of the
+    two deflections (0.997 and 0.96 for the aileron and elevator halves of the reference model,
+    0.91 for an aileron half and the rudder, under 0.2 for the other pairs)."""
+    out = np.eye(ns)
+    if slot_surface.shape[1] < 2:  # no pair hypotheses
+        return out
+    w = 1.0 / np.sqrt(np.diag(r))
+    for f in range(slot_surface.shape[0]):
+        a, b = int(slot_surface[f, 0]), int(slot_surface[f, 1])
+        if a < 0 or b < 0:
+            continue
+        m = np.eye(phi.shape[1])
+        ea, eb = [], []
+        for _ in range(kern.COLLINEAR_STEPS):
+            m = phi[f] @ m
+            ea.append(w * (h @ m[:, n]))
+            eb.append(w * (h @ m[:, n + 1]))
+        va, vb = np.concatenate(ea), np.concatenate(eb)
+        den = float(np.linalg.norm(va) * np.linalg.norm(vb))
+        out[a, b] = out[b, a] = float(va @ vb) / den if den > 0.0 else 0.0
+    return out
 
 
 def build_bank(config: StmmaeConfig) -> kern.BankArrays:
@@ -600,6 +636,7 @@ def build_bank(config: StmmaeConfig) -> kern.BankArrays:
         p0=p0a,
         slot_surface=slot_surface,
         floors=floors,
+        collinear=_collinearity(phi, ha, r, slot_surface, n, len(surf_idx)),
     )
     for a in arrays:
         a.setflags(write=False)

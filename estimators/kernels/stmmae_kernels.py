@@ -68,7 +68,9 @@ CFG_MIN_ERR_STD = 22  # smallest |deflection estimate - command| in posterior st
 CFG_KIND_CUT = 24  # 1: a detection cuts the open kind spans of the faults active before it
 CFG_SERVO_A = 23  # servo model: a surface's applied deflection moves by this share of the gap
 # to its command per model step (1 - exp(-dt / tau); 1: no lag)
-CFG_LEN = 25
+CFG_KIND_TWIN = 25  # 1: a fault's kind history is conditioned on the active stuck faults' positions
+CFG_LEN = 26
+COLLINEAR_STEPS = 20  # model steps over which a deflection's effect on the measurements is taken
 
 KIND_BLOCK_S = 0.05  # the kind test reads the deflection estimate as means over 0.05 s blocks
 KIND_BLOCKS = 200  # capacity of the block history: fault_kind_window_s <= 10 s
@@ -185,6 +187,8 @@ class BankArrays(NamedTuple):
             whose deflection each augmented state slot of a filter holds, -1 for none (the
             no-fault filter has none, a single-fault filter one, a pair filter two).
         floors: (nh,) probability floor of each hypothesis.
+        collinear: (s, s) cosine between two surfaces' whitened effects on the measurements
+            over the ``COLLINEAR_STEPS`` steps after a deflection (1 on the diagonal).
     """
 
     phi: FloatArray
@@ -213,6 +217,7 @@ class BankArrays(NamedTuple):
     p0: FloatArray
     slot_surface: IntArray
     floors: FloatArray
+    collinear: FloatArray
 
 
 class Layout(NamedTuple):
@@ -844,6 +849,7 @@ def _decide(
     a_clear: float,
     llr: float,
     others_active: bool,
+    kval: float,
 ) -> int:
     """Detection, classification and clearance of one surface at one sample; returns 0 or
     ``EV_DETECTED``/``EV_CLASSIFIED``/``EV_CLEARED`` (the caller writes the event from
@@ -855,12 +861,15 @@ def _decide(
     its strongest competitor's) above ``CFG_DETECT_P``, the smoothed deflection estimate more
     than ``CFG_MIN_ERR`` from the command, and at the end the log-likelihood ratio between the
     nested families (:func:`_relevant_loglik`) summed over the run at least ``CFG_MIN_LLR``.
+    ``kval`` is the value the kind history records (``defl``, or ``defl`` corrected by an
+    active stuck twin, :func:`kind_value`).
     Clearance (hysteresis): the smoothed difference between deflection estimate
     and command inside ``CFG_CLEAR_DEFL`` (the surface follows its command again) and, unless
     the bank is rebased (the probability then no longer compares with the command), the
     probability below ``CFG_CLEAR_P``, together for ``CFG_CLEAR_HOLD_S``."""
     lim = cfg[CFG_LIMIT]
     defl = min(max(defl, -lim), lim)
+    kval = min(max(kval, -lim), lim)
     if dec[h, D_SMOOTH_SET] == 0.0 or not dt > 0.0:
         dec[h, D_SMOOTH] = defl
         dec[h, D_CSMOOTH] = defl - cmd
@@ -885,7 +894,7 @@ def _decide(
                 _start_run(dec, h, t)
             if math.isfinite(llr):
                 dec[h, D_LLR] += llr
-            _kind_add(dec, kbuf, h, t, defl, defl_var)
+            _kind_add(dec, kbuf, h, t, kval, defl_var)
             hold = cfg[CFG_HOLD_ACTIVE_S] if others_active else cfg[CFG_HOLD_S]
             if t - dec[h, D_ABOVE_T] >= hold and dec[h, D_LLR] >= cfg[CFG_MIN_LLR]:
                 dec[h, D_ACTIVE] = 1.0
@@ -903,7 +912,7 @@ def _decide(
             # reject them and their estimate says nothing of the surface (a gap: the block
             # history repeats the last block's mean)
             if prob > cfg[CFG_ONSET_P]:
-                _kind_add(dec, kbuf, h, t, defl, defl_var)
+                _kind_add(dec, kbuf, h, t, kval, defl_var)
         else:
             _kind_pad(cfg, dec, kbuf, h, t)
             _judge_kind(cfg, dec, kbuf, h)
@@ -924,6 +933,66 @@ def _decide(
     else:
         dec[h, D_BELOW_T] = np.nan
     return code
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def twins(collinear: FloatArray, h: int, a: int) -> bool:
+    """``h`` and ``a`` are each other's most collinear surface (the cosine of their whitened
+    effects on the measurements, ``BankArrays.collinear``, the largest in absolute value in
+    both rows): the halves of a split surface, whose data determine mainly the sum of the two
+    deflections."""
+    c = abs(collinear[h, a])
+    for o in range(collinear.shape[0]):
+        if o != h and o != a and (abs(collinear[h, o]) >= c or abs(collinear[a, o]) >= c):
+            return False
+    return True
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def kind_value(
+    cfg: FloatArray,
+    dec: FloatArray,
+    slot_surface: IntArray,
+    ps: FloatArray,
+    n: int,
+    h: int,
+    defl: FloatArray,
+    collinear: FloatArray,
+) -> float:
+    """The value the kind history of ``h`` records: its deflection estimate ``defl[h]``, plus,
+    conditioned, for every other surface ``a`` in fault whose kind has been judged stuck and
+    that is ``h``'s twin (:func:`twins`), on ``a`` being at its stuck position ``pos``: with
+    ``P`` the covariance of the filter freeing both, ``defl[h] + P_ha / P_aa (pos - defl[a])``.
+    ``a`` is taken to be constant, so its estimate's excursions are in good part ``h``'s
+    deflection misattributed to ``a`` (only the sum of the two is well determined)."""
+    val = float(defl[h])
+    if cfg[CFG_KIND_TWIN] == 0.0:
+        return val
+    ns = dec.shape[0]
+    nh = slot_surface.shape[0]
+    n_slots = slot_surface.shape[1]
+    for a in range(ns):
+        if a == h or dec[a, D_ACTIVE] != 1.0 or dec[a, D_KIND] != KIND_STUCK:
+            continue
+        if not twins(collinear, h, a):
+            continue
+        pos = episode_mean(dec, a)
+        if not math.isfinite(pos) or not math.isfinite(defl[a]):
+            continue
+        for f in range(nh):
+            sh = -1
+            sa = -1
+            for e in range(n_slots):
+                if slot_surface[f, e] == h:
+                    sh = n + e
+                elif slot_surface[f, e] == a:
+                    sa = n + e
+            if sh < 0 or sa < 0:
+                continue
+            if ps[f, sa, sa] > 0.0:
+                val += ps[f, sh, sa] / ps[f, sa, sa] * (pos - defl[a])
+            break
+    return val
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -1138,6 +1207,7 @@ def _bank_kernel(
     # of the filters holding it and of those not holding it
     pm = np.empty(ns)
     dsum = np.empty(ns)
+    dmean = np.empty(ns)
     vsum = np.empty(ns)
     ll_in = np.empty(ns)
     ll_out = np.empty(ns)
@@ -1286,7 +1356,9 @@ def _bank_kernel(
             if dec[h, D_ACTIVE] == 1.0:
                 n_active_before += 1
         for h in range(ns):
-            defl = dsum[h] / pm[h]
+            dmean[h] = dsum[h] / pm[h]
+        for h in range(ns):
+            defl = dmean[h]
             samples[row, k] = defl
             samples[row + ns, k] = pm[h]
             row += 1
@@ -1310,6 +1382,7 @@ def _bank_kernel(
                 a_clear,
                 llr,
                 n_active_before > 0,
+                kind_value(cfg, dec, bank.slot_surface, ps, n, h, dmean, bank.collinear),
             )
             if code != 0:
                 events = _write_event(events, n_ev, tk, float(code), dec, h)

@@ -711,6 +711,7 @@ def _decide_steps(config, probs, defl_deg, cmd_deg, llrs, dt, others_active, def
             a_c,
             llr,
             others_active,
+            math.radians(d),  # the kind history's value: the estimate itself
         )
         if code:
             codes.append((round(k * dt, 2), code))
@@ -1156,3 +1157,60 @@ def test_version_3_state_gets_its_applied_inputs_from_the_last_commands() -> Non
         stmmae._current_vector(config, state)[: lay.applied], state.vector
     )
     assert json.loads(stmmae.dump_state(state))["version"] == 3
+
+
+def test_kind_value_is_conditioned_on_an_active_stuck_twin() -> None:
+    """``kind_value``: two halves freed together by one filter whose posterior correlates their
+    deflection estimates at -0.9 (only the sum well determined). The first half is in fault,
+    judged stuck at 5 deg; its estimate swings with the second half's deflection (the leak),
+    the second half's estimate carries the opposite. The value recorded for the second half is
+    its estimate conditioned on the first being at its stuck position (``x_h + P_ha / P_aa
+    (pos - x_a)``); unchanged when the two surfaces' effects are not collinear, when the first
+    half's kind is not stuck, or with the option off."""
+    config = stmmae.parse_config({})
+    cfg = config.kernel_vector.copy()
+    n = 2  # base states before the deflection slots
+    slot_surface = np.array([[0, 1], [2, -1]], dtype=np.int64)  # filter 0 frees 0 and 1
+    ps = np.zeros((2, n + 2, n + 2))
+    for f in range(2):
+        ps[f] = np.eye(n + 2)
+    ps[0, n, n + 1] = ps[0, n + 1, n] = -0.9
+    twins = np.eye(3)
+    twins[0, 1] = twins[1, 0] = 0.99
+    dec = np.zeros((3, kern.D_LEN))
+    dec[1, kern.D_ACTIVE] = 1.0
+    dec[1, kern.D_KIND] = kern.KIND_STUCK
+    dec[1, kern.D_EP_SUM] = math.radians(5.0)
+    dec[1, kern.D_EP_N] = 1.0
+    true_def, leak = math.radians(-3.0), math.radians(2.5)
+    defl = np.array([true_def - leak, math.radians(5.0) + leak, 0.0])
+    got = kern.kind_value(cfg, dec, slot_surface, ps, n, 0, defl, twins)
+    assert got == pytest.approx(true_def - 0.1 * leak)
+    # a surface no filter frees with the stuck one: unchanged
+    assert kern.kind_value(cfg, dec, slot_surface, ps, n, 2, defl, twins) == defl[2]
+    apart = twins.copy()  # surface 0's effects are closer to surface 2's than to 1's
+    apart[0, 2] = apart[2, 0] = 0.995
+    assert kern.kind_value(cfg, dec, slot_surface, ps, n, 0, defl, apart) == defl[0]
+    osc = dec.copy()
+    osc[1, kern.D_KIND] = kern.KIND_OSCILLATING
+    assert kern.kind_value(cfg, osc, slot_surface, ps, n, 0, defl, twins) == defl[0]
+    off = stmmae.parse_config({"fault_kind_twin_correction": False}).kernel_vector
+    assert kern.kind_value(off, dec, slot_surface, ps, n, 0, defl, twins) == defl[0]
+
+
+def test_collinearity_of_the_reference_model_separates_the_split_halves() -> None:
+    """The halves of the aileron and of the elevator are the only twins (each other's most
+    collinear surface), whose kind histories are conditioned on each other's stuck position;
+    the rudder, close to the aileron halves, is not."""
+    arrays = stmmae.build_bank(stmmae.parse_config({}))
+    names = list(SURFACES)
+    above = {
+        frozenset((names[a], names[b]))
+        for a in range(len(names))
+        for b in range(a + 1, len(names))
+        if kern.twins(arrays.collinear, a, b)
+    }
+    assert above == {
+        frozenset(("aileron_left", "aileron_right")),
+        frozenset(("elevator_left", "elevator_right")),
+    }
