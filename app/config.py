@@ -37,6 +37,9 @@ class Settings(BaseSettings):
     max_future_s: float = Field(default=86_400.0, ge=0)
     sqlite_synchronous: Literal["FULL", "NORMAL"] = "FULL"
     processor_enabled: bool = True
+    # SQLite file: "on" runs the processor in a child process of serve (its own interpreter
+    # lock; app/processing/apply_process.py, docs/scaling.md); "off" in a thread of serve.
+    apply_process: Literal["on", "off"] = "on"
     processor_scan_interval_s: float = Field(default=2.0, gt=0)
     processor_max_samples_per_txn: int = Field(default=1_000_000, gt=0)
     processor_max_batches_per_txn: int = Field(default=256, gt=0)

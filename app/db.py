@@ -5,12 +5,16 @@ never both hold a read snapshot and then fail to upgrade; read transactions stay
 readers never wait on writers. SQLite has one write lock per file: within a process, writers
 queue for it on a mutex (woken the moment it is free, in arrival order) instead of polling the
 file lock through ``busy_timeout``; the log writer and the processor are the only frequent
-writers. On PostgreSQL the per-stream lease is a row lock
+writers. Across processes (``serve`` and its apply process, or a CLI command next to a server)
+the writer holding that mutex then takes an exclusive ``flock`` on ``<database>.writelock``,
+which blocks in the kernel until the other process's write transaction ends: no process polls. On PostgreSQL the per-stream lease is a row lock
 (``SELECT ... FOR UPDATE``) on the actuator row.
 """
 
 from __future__ import annotations
 
+import fcntl
+import os
 import threading
 import time
 from collections.abc import Iterator
@@ -180,6 +184,45 @@ class FairWriteLock:
                 self._cond.notify_all()
 
 
+class FileWriteLock:
+    """An exclusive ``flock`` on a file beside the SQLite database, held for each write
+    transaction: the write lock across processes, taken by a blocking call that sleeps in the
+    kernel until the holder releases it (or exits: the kernel releases a dead process's lock).
+    One per process and database; the in-process :class:`FairWriteLock` is taken first, so
+    only one thread of a process ever waits here."""
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+        self._fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+
+    def acquire(self, blocking: bool = True) -> bool:
+        try:
+            fcntl.flock(self._fd, fcntl.LOCK_EX if blocking else fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return False
+        return True
+
+    def release(self) -> None:
+        fcntl.flock(self._fd, fcntl.LOCK_UN)
+
+    def close(self) -> None:
+        if self._fd >= 0:
+            os.close(self._fd)
+            self._fd = -1
+
+    def __del__(self) -> None:  # a Database dropped without dispose() (tests) keeps no descriptor
+        self.close()
+
+
+def _file_write_lock(database: str) -> FileWriteLock | None:
+    """The cross-process write lock of a SQLite database file (None where the lock file cannot
+    be created: writers then fall back to SQLite's busy wait)."""
+    try:
+        return FileWriteLock(str(Path(database).resolve()) + ".writelock")
+    except OSError:
+        return None
+
+
 class Database:
     """Owns the engine and the two session factories (read and write)."""
 
@@ -187,6 +230,10 @@ class Database:
         self.url = normalize_url(url)
         self.engine = make_engine(self.url, sqlite_synchronous=sqlite_synchronous)
         self.is_sqlite = is_sqlite(self.url)
+        database = make_url(self.url).database
+        #: A SQLite database in a file (other processes can open it), or PostgreSQL.
+        self.is_file = not self.is_sqlite or bool(database and database != ":memory:"
+                                                  and not database.startswith("file:"))
         write_bind = (
             self.engine.execution_options(sqlite_begin="IMMEDIATE")
             if self.is_sqlite
@@ -195,6 +242,8 @@ class Database:
         # Re-entrant (a write nested in another on the same thread must not deadlock on itself)
         # and first come, first served.
         self._write_mutex: FairWriteLock | None = FairWriteLock() if self.is_sqlite else None
+        self._file_lock = _file_write_lock(str(database)) if self.is_sqlite and self.is_file else None
+        self._holder: int | None = None  # the thread holding the cross-process lock
         self._read = sessionmaker(bind=self.engine, expire_on_commit=False)
         self._write = sessionmaker(bind=write_bind, expire_on_commit=False)
         # Writes whose loss in a power cut is harmless (they are recomputed from what is durable).
@@ -238,8 +287,27 @@ class Database:
                     session.connection().exec_driver_sql("SET LOCAL synchronous_commit TO OFF")
                 yield session
             return
-        with self._write_mutex, factory() as session, session.begin():
+        with self._write_mutex, self._across_processes(), factory() as session, session.begin():
             yield session
+
+    @contextmanager
+    def _across_processes(self) -> Iterator[None]:
+        """Hold the cross-process write lock (under the in-process mutex; re-entrant through it:
+        a nested write of the same thread takes nothing more)."""
+        lock = self._file_lock
+        if lock is None or self._held_here():
+            yield
+            return
+        lock.acquire()
+        self._holder = threading.get_ident()
+        try:
+            yield
+        finally:
+            self._holder = None
+            lock.release()
+
+    def _held_here(self) -> bool:
+        return self._holder == threading.get_ident()
 
     @contextmanager
     def write_if_free(self, *, durable: bool = True) -> Iterator[Session | None]:
@@ -250,6 +318,20 @@ class Database:
             yield None
             return
         try:
+            lock = self._file_lock
+            if lock is not None and not self._held_here():
+                if not lock.acquire(blocking=False):  # another process writes
+                    yield None
+                    return
+                self._holder = threading.get_ident()
+                try:
+                    factory = self._write if durable else self._write_recomputable
+                    with factory() as session, session.begin():
+                        yield session
+                finally:
+                    self._holder = None
+                    lock.release()
+                return
             factory = self._write if durable else self._write_recomputable
             with factory() as session, session.begin():
                 yield session
@@ -258,3 +340,6 @@ class Database:
 
     def dispose(self) -> None:
         self.engine.dispose()
+        if self._file_lock is not None:
+            self._file_lock.close()
+            self._file_lock = None

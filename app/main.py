@@ -24,6 +24,7 @@ from app.fleet import router as fleet_router
 from app.health import router as health_router
 from app.kernels import KernelWarmup
 from app.processing import wakeups
+from app.processing.apply_process import ApplyProcess
 from app.processing.processor import Processor
 from app.streams import router as streams_router
 from app.system import router as system_router
@@ -62,19 +63,29 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         db = Database(settings.database_url, sqlite_synchronous=settings.sqlite_synchronous)
         # PostgreSQL: wake-ups, applied marks and fleet events also cross processes (workers).
         chans = wakeups.channels(db) if not db.is_sqlite and settings.pg_notify == "on" else None
+        # SQLite: the processor may run in a child process (APPLY_PROCESS=on); this process
+        # then only logs, serves and hears of the applies (app/processing/apply_process.py).
+        child = None
+        local = settings
+        if settings.processor_enabled and settings.apply_process == "on" and db.is_sqlite and db.is_file:
+            local = settings.model_copy(update={"processor_enabled": False})
         kernels = KernelWarmup(
             list(ESTIMATORS),
             processes=settings.warm_kernels_processes,
             # A process that never applies (ingest only) needs no kernels.
-            enabled=settings.warm_kernels and settings.processor_enabled,
+            enabled=settings.warm_kernels and local.processor_enabled,
         )
         processor = Processor(
             db,
-            settings,
+            local,
             applied_channel=chans.applied if chans else None,
             origin=wakeups.ORIGIN,
             ready_kinds=kernels.applicable_kinds,
         )
+        if local is not settings:
+            child = ApplyProcess(settings, kinds=list(ESTIMATORS), on_applied=processor.applied_elsewhere,
+                                 on_failed=processor.hub.mark_failed, on_restart=processor.resync)
+            processor.forward = child.notify_many
         writer = LogWriter(
             db,
             max_group=settings.log_writer_max_group,
@@ -104,8 +115,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.deliverer = deliverer
         app.state.log_writer = writer
         app.state.ingest_memory = IngestMemory(settings.ingest_memory_bytes, settings.ingest_memory_wait_s)
-        app.state.kernels = kernels
-        app.state.kernels_warm = kernels.done
+        app.state.apply_process = child
+        app.state.kernels = child if child is not None else kernels
+        app.state.kernels_warm = child.kernels_done if child is not None else kernels.done
         if settings.bootstrap_admin_key:
             with db.write() as s:
                 ensure_key(s, settings.bootstrap_operator, settings.bootstrap_admin_key,
@@ -114,12 +126,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         # Batches are accepted (and durable) while the kernels compile; the processor applies a
         # stream once the kinds of all its estimators are ready, so no apply pays a compile.
         def _kind_ready(kind: str) -> None:
-            if settings.processor_enabled:
+            if local.processor_enabled:
                 processor.recover()  # wake the streams that waited for this kind
 
         kernels.on_ready = _kind_ready
-        if settings.processor_enabled:
+        if local.processor_enabled:
             processor.start()
+        if child is not None:
+            child.start()
         kernels.start()
         if deliverer is not None:
             deliverer.start()
@@ -130,6 +144,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             writer.stop()
             if listener is not None:
                 listener.stop()
+            if child is not None:
+                child.stop(settings.shutdown_timeout_s)
             processor.stop()
             if deliverer is not None:
                 deliverer.stop()

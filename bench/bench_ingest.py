@@ -202,15 +202,8 @@ def _stop(process: subprocess.Popen[bytes]) -> None:
         process.wait(timeout=10)
 
 
-def tree_cpu_s(pid: int) -> float:
-    """CPU seconds (user + system) used so far by a process and its threads, from /proc: on a
-    machine shared with other work, CPU per request is steadier than wall-clock rates."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
-def tree_rss_bytes(pid: int) -> int:
-    """Resident memory of a process and its descendants, from /proc."""
+def _tree(pid: int) -> list[int]:
+    """A process and its live descendants (the apply process of ``APPLY_PROCESS=on``), from /proc."""
     children: dict[int, list[int]] = {}
     for entry in os.listdir("/proc"):
         if not entry.isdigit():
@@ -221,14 +214,34 @@ def tree_rss_bytes(pid: int) -> int:
             continue
         ppid = int(stat.rsplit(")", 1)[1].split()[1])
         children.setdefault(ppid, []).append(int(entry))
-    total, stack = 0, [pid]
+    found, stack = [], [pid]
     while stack:
         current = stack.pop()
+        found.append(current)
+        stack.extend(children.get(current, []))
+    return found
+
+
+def tree_cpu_s(pid: int) -> float:
+    """CPU seconds (user + system) used so far by a process, its threads and its live child
+    processes, from /proc: on a machine shared with other work, CPU per request is steadier
+    than wall-clock rates."""
+    total = 0
+    for current in _tree(pid):
+        with contextlib.suppress(OSError):  # the process ended meanwhile
+            fields = Path(f"/proc/{current}/stat").read_text().rsplit(")", 1)[1].split()
+            total += int(fields[11]) + int(fields[12])
+    return total / os.sysconf("SC_CLK_TCK")
+
+
+def tree_rss_bytes(pid: int) -> int:
+    """Resident memory of a process and its descendants, from /proc."""
+    total = 0
+    for current in _tree(pid):
         with contextlib.suppress(OSError):  # the process ended meanwhile
             for line in Path(f"/proc/{current}/status").read_text().splitlines():
                 if line.startswith("VmRSS:"):
                     total += int(line.split()[1]) * 1024
-        stack.extend(children.get(current, []))
     return total
 
 
@@ -544,13 +557,14 @@ def bench_memory(
 
 
 def run_backend(
-    backend: str, database_url: str, workdir: Path, args: argparse.Namespace, source: Path | None = None
+    backend: str, database_url: str, workdir: Path, args: argparse.Namespace, source: Path | None = None,
+    extra_env: dict[str, str] | None = None,
 ) -> dict:
     rows: list[Row] = []
     memory: dict[str, float] = {}
     rate: dict[str, dict[str, float]] = {}
     run_id = secrets.token_hex(3).upper()
-    with running_server(database_url, workdir, args.ready_timeout_s, source=source) as server:
+    with running_server(database_url, workdir, args.ready_timeout_s, source=source, extra_env=extra_env) as server:
         print(f"[{backend}] server {server.url} pid {server.process.pid} ready", flush=True)
         with FleetHealthClient(server.url, server.api_key, timeout=120.0) as client:
             # Warm-up: one stream through the whole path, so that memory figures exclude imports.
@@ -792,6 +806,11 @@ def main(argv: list[str] | None = None) -> int:
         "--baseline", type=Path, default=None,
         help="also run the same cases against this source tree (e.g. git worktree add /tmp/base main), side by side",
     )
+    parser.add_argument(
+        "--apply-process", action="store_true",
+        help="SQLite also with FLEETHEALTH_APPLY_PROCESS=on (the processor in a child process), "
+             "run after the default (this tree only)",
+    )
     args = parser.parse_args(argv)
     if args.quick:
         args.batches, args.streams, args.batches_per_stream, args.idle_streams = 3, 10, 1, 50
@@ -808,6 +827,11 @@ def main(argv: list[str] | None = None) -> int:
             if not args.no_sqlite:
                 url = f"sqlite:///{workdir / f'bench{suffix.strip()}.db'}"
                 results[f"sqlite{suffix}"] = run_backend(f"sqlite{suffix}", url, workdir, args, source)
+                if args.apply_process and source is None:
+                    url = f"sqlite:///{workdir / f'bench{suffix.strip()}-ap.db'}"
+                    results[f"sqlite apply-process{suffix}"] = run_backend(
+                        f"sqlite apply-process{suffix}", url, workdir, args, source,
+                        extra_env={"FLEETHEALTH_APPLY_PROCESS": "on"})
             if args.pg:
                 pg = args.baseline_pg if source is not None and args.baseline_pg else args.pg
                 results[f"postgres{suffix}"] = run_backend(f"postgres{suffix}", pg, workdir, args, source)
@@ -821,7 +845,7 @@ def main(argv: list[str] | None = None) -> int:
             th.start()
         for th in threads:
             th.join()
-        order = [f"{b}{suffix}" for b in ("sqlite", "postgres") for suffix, _ in runs]
+        order = [f"{b}{suffix}" for b in ("sqlite", "sqlite apply-process", "postgres") for suffix, _ in runs]
         results = {k: results[k] for k in order if k in results}
     print_table(results)
     if args.json_out:

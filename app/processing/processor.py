@@ -138,6 +138,9 @@ class Processor:
         applied_channel: str | None = None,
         origin: str = "",
         ready_kinds: Callable[[], frozenset[str] | None] = lambda: None,
+        announce: Callable[[list[str]], None] | None = None,
+        forward: Callable[[Sequence[int]], None] | None = None,
+        in_lock_applies: bool = True,
     ) -> None:
         self.db = db
         # Batches this process logged, decoded (the log writer fills it when this process applies).
@@ -149,6 +152,16 @@ class Processor:
         # PostgreSQL: the channel on which applies are announced to other processes.
         self.applied_channel = applied_channel
         self.origin = origin
+        # SQLite apply process: sends the applied channel's payloads to the serving process
+        # after each commit (app/processing/apply_process.py).
+        self.announce = announce
+        # A process that does not apply (processor_enabled false) and whose wake-ups reach the
+        # applying process directly (SQLite apply process): where notify() sends them.
+        self.forward = forward
+        # SQLite: whether a small apply may run inside the write lock when it is free
+        # (_apply_in_lock). An apply process computes outside it: the serving process's log
+        # commits would wait for its computation, and the CPU the second read costs is its own.
+        self.in_lock_applies = in_lock_applies
         # Estimator kinds whose kernels are ready (None: all); other streams wait, and are
         # woken by recover() when their kind becomes ready.
         self.ready_kinds = ready_kinds
@@ -181,12 +194,14 @@ class Processor:
             self._thread.join(timeout)
 
     def notify(self, actuator_pk: int) -> None:
-        if self.settings.processor_enabled:  # else nobody would ever take it off the queue
-            self._queue.put(actuator_pk)
+        self.notify_many((actuator_pk,))
 
     def notify_many(self, actuator_pks: Sequence[int]) -> None:
-        for pk in actuator_pks:
-            self.notify(pk)
+        if self.settings.processor_enabled:  # else nobody would ever take it off the queue
+            for pk in actuator_pks:
+                self._queue.put(pk)
+        elif self.forward is not None:
+            self.forward(actuator_pks)
 
     def forget(self, actuator_pk: int) -> None:
         """Drop what this process remembers of a stream (after an admin rewind committed: its
@@ -341,6 +356,8 @@ class Processor:
             self._publish(res)
             if res.more:
                 again.append(res.actuator_pk)
+        if self.announce is not None and results:
+            self._announce([p for res in results for p in self._announcements(None, res)])
         for pk, err in errors:
             if isinstance(err, StateUnreadable):
                 done = replayed.setdefault(pk, set())
@@ -359,7 +376,7 @@ class Processor:
     def _small(self, pks: list[int]) -> bool:
         """SQLite: whether the streams' last applies were all small (the likely size of this
         one): a few streams, each of at most ``IN_LOCK_MAX_SAMPLES`` samples last time."""
-        return (self.db.is_sqlite and len(pks) <= IN_LOCK_MAX_STREAMS
+        return (self.db.is_sqlite and self.in_lock_applies and len(pks) <= IN_LOCK_MAX_STREAMS
                 and all(self._sizes.get(pk, IN_LOCK_MAX_SAMPLES + 1) <= IN_LOCK_MAX_SAMPLES for pk in pks))
 
     def _remember_size(self, res: ApplyResult) -> None:
@@ -544,7 +561,16 @@ class Processor:
         for pk in pending:
             self._recheck_at[pk] = due
 
-    def _announcements(self, session: Session, res: ApplyResult) -> list[str]:
+    def _announce(self, payloads: list[str]) -> None:
+        """Send payloads of the applied channel after their commit (apply process); a lost one
+        delays a waiter until the serving process re-reads (it does when the process restarts)."""
+        assert self.announce is not None
+        try:
+            self.announce(payloads)
+        except Exception:
+            log.exception("announcing %d applies failed", len(payloads))
+
+    def _announcements(self, session: Session | None, res: ApplyResult) -> list[str]:
         """The NOTIFY payloads of an apply: its mark and its fleet events, split to fit."""
         meta = self._stream_meta(res.actuator_pk, session)
         events = fleet_events(meta, res)
@@ -635,6 +661,9 @@ class Processor:
             _, failure = repository.applied_mark(s, actuator_pk)
         if failure is not None:
             self.hub.mark_failed(actuator_pk, failure)
+            if self.announce is not None:
+                self._announce([orjson.dumps({"o": self.origin, "pk": actuator_pk,
+                                              "failure": failure[: NOTIFY_MAX_BYTES // 2]}).decode()])
 
     # ------------------------------------------------------------------ publishing
     def _publish(self, res: ApplyResult) -> None:

@@ -3,6 +3,7 @@ API docs pages."""
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Annotated
 
@@ -16,12 +17,15 @@ from fastapi.openapi.docs import (
 from fastapi.responses import HTMLResponse, Response
 from fastapi.security import HTTPAuthorizationCredentials
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+from prometheus_client.metrics_core import Metric
+from prometheus_client.registry import REGISTRY, Collector, CollectorRegistry
 
 from app.config import Settings
 from app.db import Database
 from app.deps import SettingsDep, bearer, verify_principal
 from app.errors import NotFound, error_responses, json_response
 from app.migrate import current_revision, head_revision
+from app.processing.apply_process import merged_families
 from app.system import repository, threads
 
 router = APIRouter(tags=["system"])
@@ -132,13 +136,29 @@ def metrics_allowed(
         **error_responses(401, 403, 404),
     },
 )
-def metrics() -> Response:
+def metrics(request: Request) -> Response:
     """Prometheus text exposition: ingest, apply, streaming and stream failure counters
     (``fleethealth_streams_failed`` counts the streams no longer applied), and the CPU seconds
-    of the process's threads by name (``fleethealth_thread_cpu_seconds_total``). Process-wide
-    counts only, never per operator; access per ``FLEETHEALTH_METRICS_ACCESS`` (default: a key
-    with the read scope)."""
-    return Response(generate_latest(), media_type=CONTENT_TYPE_LATEST)
+    of the process's threads by name (``fleethealth_thread_cpu_seconds_total``). With SQLite's
+    apply process (``APPLY_PROCESS=on``) its counts are added to this process's and its threads
+    are named ``apply:<thread>``. Process-wide counts only, never per operator; access per
+    ``FLEETHEALTH_METRICS_ACCESS`` (default: a key with the read scope)."""
+    child = getattr(request.app.state, "apply_process", None)
+    if child is None:
+        return Response(generate_latest(), media_type=CONTENT_TYPE_LATEST)
+    registry = CollectorRegistry()
+    registry.register(_Families(merged_families(REGISTRY.collect(), child.metric_families())))
+    return Response(generate_latest(registry), media_type=CONTENT_TYPE_LATEST)
+
+
+class _Families(Collector):
+    """Metric families already collected, to render."""
+
+    def __init__(self, families: list[Metric]) -> None:
+        self.families = families
+
+    def collect(self) -> Iterable[Metric]:
+        return self.families
 
 
 threads.register()

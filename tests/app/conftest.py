@@ -21,6 +21,9 @@ FAKF_SMALL = {"identification_samples": 200, "health_window_samples": 250}
 
 
 def make_settings(db_url: str, **kw: Any) -> Settings:
+    """Settings of an in-process test app: the processor in a thread of the test's own process
+    (its internals are looked at) unless ``apply_process="on"`` is asked for."""
+    kw.setdefault("apply_process", "off")
     return Settings(
         database_url=db_url,
         bootstrap_admin_key=ADMIN_KEY,
