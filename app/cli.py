@@ -122,7 +122,8 @@ def cmd_worker(args: argparse.Namespace) -> int:
     if db.is_sqlite:
         db.dispose()
         print("fleethealth worker needs PostgreSQL (FLEETHEALTH_DATABASE_URL); with SQLite the "
-              "processor runs inside `fleethealth serve`", file=sys.stderr)
+              "processor runs in `fleethealth serve`'s apply process (FLEETHEALTH_APPLY_PROCESS)",
+              file=sys.stderr)
         return 2
     chans = wakeups.channels(db)
     # Streams are applied as soon as their kinds' kernels are ready (app/kernels.py).

@@ -807,9 +807,9 @@ def main(argv: list[str] | None = None) -> int:
         help="also run the same cases against this source tree (e.g. git worktree add /tmp/base main), side by side",
     )
     parser.add_argument(
-        "--apply-process", action="store_true",
-        help="SQLite also with FLEETHEALTH_APPLY_PROCESS=on (the processor in a child process), "
-             "run after the default (this tree only)",
+        "--apply-modes", action="store_true",
+        help="SQLite twice, one after the other: the processor in a thread of serve "
+             "(FLEETHEALTH_APPLY_PROCESS=off) and in its apply process (on, the default); this tree only",
     )
     args = parser.parse_args(argv)
     if args.quick:
@@ -826,12 +826,14 @@ def main(argv: list[str] | None = None) -> int:
         def backend_runs(suffix: str, source: Path | None) -> None:
             if not args.no_sqlite:
                 url = f"sqlite:///{workdir / f'bench{suffix.strip()}.db'}"
-                results[f"sqlite{suffix}"] = run_backend(f"sqlite{suffix}", url, workdir, args, source)
-                if args.apply_process and source is None:
-                    url = f"sqlite:///{workdir / f'bench{suffix.strip()}-ap.db'}"
-                    results[f"sqlite apply-process{suffix}"] = run_backend(
-                        f"sqlite apply-process{suffix}", url, workdir, args, source,
-                        extra_env={"FLEETHEALTH_APPLY_PROCESS": "on"})
+                if args.apply_modes and source is None:
+                    for mode, label in (("off", "sqlite thread"), ("on", "sqlite apply-process")):
+                        url = f"sqlite:///{workdir / f'bench{suffix.strip()}-{mode}.db'}"
+                        results[f"{label}{suffix}"] = run_backend(
+                            f"{label}{suffix}", url, workdir, args, source,
+                            extra_env={"FLEETHEALTH_APPLY_PROCESS": mode})
+                else:
+                    results[f"sqlite{suffix}"] = run_backend(f"sqlite{suffix}", url, workdir, args, source)
             if args.pg:
                 pg = args.baseline_pg if source is not None and args.baseline_pg else args.pg
                 results[f"postgres{suffix}"] = run_backend(f"postgres{suffix}", pg, workdir, args, source)
@@ -845,7 +847,8 @@ def main(argv: list[str] | None = None) -> int:
             th.start()
         for th in threads:
             th.join()
-        order = [f"{b}{suffix}" for b in ("sqlite", "sqlite apply-process", "postgres") for suffix, _ in runs]
+        order = [f"{b}{suffix}" for b in ("sqlite", "sqlite thread", "sqlite apply-process", "postgres")
+                 for suffix, _ in runs]
         results = {k: results[k] for k in order if k in results}
     print_table(results)
     if args.json_out:

@@ -178,14 +178,16 @@ def many_connections(url: str, key: str, tail: str, n_streams: int, frames: Fram
 
 
 # ----------------------------------------------------------------------------- the cases
-def run_all(args: argparse.Namespace, source: Path | None) -> dict[str, float]:
-    """Every case against one server (this checkout, or the ``source`` tree)."""
+def run_all(args: argparse.Namespace, source: Path | None, env: dict[str, str] | None = None,
+            label: str | None = None) -> dict[str, float]:
+    """Every case against one server (this checkout, or the ``source`` tree; ``env`` added to
+    its environment)."""
     n_frames = 100 if args.quick else 400
-    label = "base" if source else "new"
+    label = label or ("base" if source else "new")
     out: dict[str, float] = {}
     with tempfile.TemporaryDirectory() as tmp:
         url_db = f"sqlite:///{Path(tmp) / 'ws.db'}"
-        with running_server(url_db, Path(tmp), args.ready_timeout_s, source=source) as server:
+        with running_server(url_db, Path(tmp), args.ready_timeout_s, source=source, extra_env=env) as server:
             url, key, pid = server.url, server.api_key, server.process.pid
             cases = [(10, 1), (10, args.streams), (10, args.many), (1000, 1)]
             for size, n_streams in cases:
@@ -262,11 +264,18 @@ def main(argv: list[str] | None = None) -> int:
                     help="only the light-load latency, one server at a time, base and new in turn "
                          "for this many rounds (side by side, both servers at once, each one's "
                          "latency depends on what the other is doing at that moment)")
+    ap.add_argument("--apply-modes", action="store_true",
+                    help="this tree twice, one after the other: the processor in a thread of serve "
+                         "(FLEETHEALTH_APPLY_PROCESS=off) and in its apply process (on, the default)")
     args = ap.parse_args(argv)
     if args.latency_rounds:
         return latency_rounds(args)
     runs: dict[str, dict[str, float]] = {}
-    if args.baseline is None:
+    if args.apply_modes:
+        # One after the other: each mode's server has the machine to itself.
+        for mode, label in (("off", "thread"), ("on", "apply-process")):
+            runs[label] = run_all(args, None, {"FLEETHEALTH_APPLY_PROCESS": mode}, label)
+    elif args.baseline is None:
         runs["new"] = run_all(args, None)
     else:
         # Both at once, so that they share whatever else loads the machine alike (run one after
@@ -290,7 +299,7 @@ def main(argv: list[str] | None = None) -> int:
     print("\nWebSocket streaming, SQLite, FAKF attached, Arrow frames (frame -> logged -> applied -> result)")
     labels = list(runs)
     print(f"{'case':<44}" + "".join(f"{lab:>14}" for lab in labels))
-    for case in runs["new"]:
+    for case in runs[labels[-1]]:
         print(f"{case:<44}" + "".join(f"{runs[lab].get(case, float('nan')):>14,.2f}" for lab in labels))
     print("Goals: >= 10,000 frames/s of 10-sample frames over 1,000 connections; frame to result "
           "median <= 5 ms at light load. Server CPU = user + system seconds of the server process; "

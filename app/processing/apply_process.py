@@ -37,6 +37,7 @@ from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
 import orjson
+from prometheus_client import Counter
 from prometheus_client.metrics_core import Metric
 from prometheus_client.samples import Sample
 
@@ -48,6 +49,8 @@ log = logging.getLogger("fleethealth.apply_process")
 #: Wake-ups not yet taken by the child's socket are dropped past this many bytes (the child is
 #: stuck or starting; its scan finds the streams).
 MAX_PENDING_BYTES = 1 << 20
+STARTS = Counter("fleethealth_apply_process_starts_total",
+                 "Apply processes started by this serve process (SQLite, APPLY_PROCESS=on): 1 + restarts")
 RESTART_BACKOFF_S = (0.5, 30.0)
 #: A child that ran this long before it died is restarted without back-off.
 HEALTHY_RUN_S = 30.0
@@ -158,6 +161,7 @@ class ApplyProcess:
         finally:
             child.close()
         self.starts += 1
+        STARTS.inc()
         settings = self.settings.model_dump_json().encode()
         parent.sendall(b"S " + settings + b"\n")
         with self._lock:
