@@ -84,8 +84,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         )
         if local is not settings:
             child = ApplyProcess(settings, kinds=list(ESTIMATORS), on_applied=processor.applied_elsewhere,
-                                 on_failed=processor.hub.mark_failed, on_restart=processor.resync)
+                                 on_failed=processor.hub.mark_failed, on_results=processor.results_elsewhere,
+                                 on_restart=processor.resync, watched=processor.hub.streams)
             processor.forward = child.notify_many
+            processor.hub.on_watch = child.watch
         writer = LogWriter(
             db,
             max_group=settings.log_writer_max_group,

@@ -5,36 +5,45 @@ One process does its Python work under one interpreter lock: with the processor 
 the HTTP and WebSocket work and the log writer, and a child process applies the streams; the
 two share the SQLite file. Neither polls: writers of both processes take the cross-process
 write lock (:class:`app.db.FileWriteLock`, a blocking ``flock``) after their own in-process
-one, and the two talk over a Unix socket pair, one line per message:
+one, and the two exchange frames over a Unix socket pair (a 4-byte length, a kind byte, the
+body):
 
-* ``serve`` -> child: ``S <settings JSON>`` first, then ``L pk,pk,...`` after each log commit
-  (the streams to wake, as ``LISTEN/NOTIFY``'s ``logged`` channel on PostgreSQL);
-* child -> ``serve``: ``A <payload>`` after each apply commit, the payloads of the applied
-  channel (:mod:`app.processing.wakeups`: applied mark, fleet events, or a failure);
-  ``K <JSON>`` the kernel warm-up's state (for ``/readyz``) until every kind is ready; and
-  ``M <JSON>`` every second, its ``fleethealth_*`` metrics, which ``serve``'s ``/metrics``
-  adds to its own (:func:`merged_families`; its threads named ``apply:<thread>``).
+* ``serve`` -> child: ``S`` the settings (JSON), first; ``L`` after each log commit, the streams
+  to wake (``pk,pk,...``, as ``LISTEN/NOTIFY``'s ``logged`` channel on PostgreSQL); ``W``/``U``
+  a stream that got its first / lost its last WebSocket connection in ``serve``;
+* child -> ``serve``: after each apply commit, ``R`` the results of a watched stream (pickled
+  :class:`~app.processing.messages.BatchResult`\ s, pushed to its connections as this process
+  pushes its own) and ``A`` the payloads of the applied channel (:mod:`app.processing.wakeups`:
+  applied mark and fleet events, ``"r": 1`` when the results went ahead; or a failure); ``K``
+  the kernel warm-up's state (for ``/readyz``) until every kind is ready; ``M`` every second,
+  its ``fleethealth_*`` metrics, which ``serve``'s ``/metrics`` adds to its own
+  (:func:`merged_families`; its threads named ``apply:<thread>``).
 
 A message is sent after its commit and only then. Messages are not durable and need not be:
 the child scans for pending streams when it starts and every ``processor_scan_interval_s``;
-``serve`` re-reads its waiters' marks whenever it starts a child. If the child dies (even
-SIGKILL: the kernel releases its ``flock`` and SQLite rolls its transaction back), ``serve``
-starts another, which applies from the last committed state: nothing is lost or applied twice.
-The child exits when the socket closes (``serve`` ended, however it ended).
+``serve`` re-reads its waiters' marks and sends its watched streams whenever it starts a child.
+A connection that misses a push reads its results back from the store, as for any apply made
+elsewhere. If the child dies (even SIGKILL: the kernel releases its ``flock`` and SQLite rolls
+its transaction back), ``serve`` starts another, which applies from the last committed state:
+nothing is lost or applied twice. The child exits when the socket closes (``serve`` ended,
+however it ended). Pickle crosses only this private socket pair between two processes of the
+same program.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import pickle
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterable, Sequence
-from typing import Any
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from typing import IO, Any
 
 import orjson
 from prometheus_client import Counter
@@ -42,38 +51,59 @@ from prometheus_client.metrics_core import Metric
 from prometheus_client.samples import Sample
 
 from app.config import Settings
-from app.processing import wakeups
 
 log = logging.getLogger("fleethealth.apply_process")
 
-#: Wake-ups not yet taken by the child's socket are dropped past this many bytes (the child is
-#: stuck or starting; its scan finds the streams).
+#: Frames not yet taken by the child's socket: past this many bytes, new wake-ups are dropped
+#: (the child is stuck or starting; its scan finds the streams).
 MAX_PENDING_BYTES = 1 << 20
-STARTS = Counter("fleethealth_apply_process_starts_total",
-                 "Apply processes started by this serve process (SQLite, APPLY_PROCESS=on): 1 + restarts")
 RESTART_BACKOFF_S = (0.5, 30.0)
 #: A child that ran this long before it died is restarted without back-off.
 HEALTHY_RUN_S = 30.0
+STARTS = Counter("fleethealth_apply_process_starts_total",
+                 "Apply processes started by this serve process (SQLite, APPLY_PROCESS=on): 1 + restarts")
+_HEADER = struct.Struct("!IB")
+
+
+def frame(kind: bytes, body: bytes) -> bytes:
+    return _HEADER.pack(len(body), kind[0]) + body
+
+
+def frames(reader: IO[bytes]) -> Iterator[tuple[bytes, bytes]]:
+    """(kind, body) of each frame until the socket closes."""
+    while True:
+        header = reader.read(_HEADER.size)
+        if len(header) < _HEADER.size:
+            return
+        n, kind = _HEADER.unpack(header)
+        body = reader.read(n)
+        if len(body) < n:
+            return
+        yield bytes([kind]), body
 
 
 class ApplyProcess:
-    """``serve``'s side: starts the child, keeps it running, sends it wake-ups and hands its
-    announcements to the callbacks (from its own thread)."""
+    """``serve``'s side: starts the child, keeps it running, sends it wake-ups and the streams
+    watched here, and hands its messages to the callbacks (from its own thread)."""
 
     def __init__(
         self,
         settings: Settings,
         *,
         kinds: Sequence[str],
-        on_applied: Callable[[int, int, list[dict[str, Any]]], None],
+        on_applied: Callable[[int, int, list[dict[str, Any]], bool], None],
         on_failed: Callable[[int, str], None],
+        on_results: Callable[[int, list[Any]], None],
         on_restart: Callable[[], object],
+        watched: Callable[[], Iterable[int]] = lambda: (),
         command: Sequence[str] | None = None,
     ) -> None:
         self.settings = settings
         self.on_applied = on_applied
         self.on_failed = on_failed
+        self.on_results = on_results
         self.on_restart = on_restart
+        self.watched = watched
         self.command = list(command or [sys.executable, "-m", "app.processing.apply_process"])
         self._kernels: dict[str, dict[str, Any]] = {k: {"status": "waiting"} for k in kinds}
         self._metrics: list[Any] = []
@@ -84,8 +114,6 @@ class ApplyProcess:
         self._proc: subprocess.Popen[bytes] | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        #: Children started so far (1 + restarts).
-        self.starts = 0
 
     # ------------------------------------------------------------------ serve's side
     def start(self) -> None:
@@ -93,15 +121,16 @@ class ApplyProcess:
         self._thread = threading.Thread(target=self._supervise, name="fleethealth-apply-process", daemon=True)
         self._thread.start()
 
-    @property
-    def pid(self) -> int | None:
-        return self._proc.pid if self._proc is not None else None
-
     def notify_many(self, actuator_pks: Sequence[int]) -> None:
         """Wake the streams in the child; never blocks (a wake-up the socket cannot take now
         waits in a bounded buffer, or is dropped for the child's scan to find)."""
         if actuator_pks:
-            self._send(b"L " + ",".join(map(str, actuator_pks)).encode() + b"\n")
+            self._send(frame(b"L", ",".join(map(str, actuator_pks)).encode()))
+
+    def watch(self, actuator_pk: int, watched: bool) -> None:
+        """A stream got its first (True) or lost its last WebSocket connection here: the child
+        pushes its results (or stops)."""
+        self._send(frame(b"W" if watched else b"U", str(actuator_pk).encode()))
 
     def snapshot(self) -> dict[str, dict[str, Any]]:
         """The child's kernel warm-up, as ``KernelWarmup.snapshot`` (``/readyz``)."""
@@ -133,12 +162,16 @@ class ApplyProcess:
         if self._thread is not None:
             self._thread.join(timeout_s)
 
-    def _send(self, line: bytes) -> None:
+    def _send(self, data: bytes) -> None:
         with self._lock:
             sock = self._sock
             if sock is None:
                 return  # between two children: the next one's first scan finds the streams
-            data = self._pending + line
+            if len(self._pending) > MAX_PENDING_BYTES:
+                # Dropped whole (the buffer may end inside a frame already begun: it is kept).
+                log.warning("the apply process is not reading its wake-ups; dropping them (its scan catches up)")
+                return
+            data = self._pending + data
             try:
                 n = sock.send(data, socket.MSG_DONTWAIT)
             except BlockingIOError:
@@ -146,11 +179,6 @@ class ApplyProcess:
             except OSError:
                 return  # the child is gone; the supervisor starts another
             self._pending = data[n:]
-            if len(self._pending) > MAX_PENDING_BYTES:
-                log.warning("the apply process is not reading its wake-ups; dropping %d bytes (its scan "
-                            "catches up)", len(self._pending))
-                # Keep whole lines only: the child must not read a cut one.
-                self._pending = b""
 
     def _spawn(self) -> None:
         parent, child = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
@@ -160,10 +188,9 @@ class ApplyProcess:
                                           stdin=subprocess.DEVNULL)
         finally:
             child.close()
-        self.starts += 1
         STARTS.inc()
-        settings = self.settings.model_dump_json().encode()
-        parent.sendall(b"S " + settings + b"\n")
+        parent.sendall(frame(b"S", self.settings.model_dump_json().encode())
+                       + b"".join(frame(b"W", str(pk).encode()) for pk in self.watched()))
         with self._lock:
             self._sock, self._pending = parent, b""
         log.info("apply process %d started", self._proc.pid)
@@ -203,17 +230,23 @@ class ApplyProcess:
 
     def _read(self, sock: socket.socket) -> None:
         try:
-            with sock.makefile("rb") as lines:
-                for line in lines:
-                    self._dispatch(line.rstrip(b"\n"))
+            with sock.makefile("rb") as reader:
+                for kind, body in frames(reader):
+                    self._dispatch(kind, body)
         except (OSError, ValueError):
             return  # closed by stop(), or the child went away
 
-    def _dispatch(self, line: bytes) -> None:
-        kind, _, body = line.partition(b" ")
+    def _dispatch(self, kind: bytes, body: bytes) -> None:
         try:
             if kind == b"A":
-                wakeups.dispatch_applied(body, wakeups.ORIGIN, self.on_applied, self.on_failed)
+                doc = orjson.loads(body)
+                if "failure" in doc:
+                    self.on_failed(int(doc["pk"]), str(doc["failure"]))
+                else:
+                    self.on_applied(int(doc["pk"]), int(doc["seq"]), list(doc.get("ev") or []), not doc.get("r"))
+            elif kind == b"R":
+                pk, items = pickle.loads(body)  # noqa: S301 (our own child, a private socket pair)
+                self.on_results(int(pk), items)
             elif kind == b"M":
                 families = orjson.loads(body)
                 with self._lock:
@@ -225,21 +258,20 @@ class ApplyProcess:
                 if all(v.get("status") in ("ready", "failed") for v in snap.values()):
                     self.kernels_done.set()
             else:
-                log.warning("unknown message from the apply process: %.100r", line)
+                log.warning("unknown message %r from the apply process", kind)
         except Exception:
-            log.exception("bad message from the apply process: %.200r", line)
+            log.exception("bad message %r from the apply process", kind)
 
 
 # ---------------------------------------------------------------------- the child
 class _Pipe:
-    """The child's end: sends whole lines (from any thread)."""
+    """The child's end: sends whole frames (from any thread)."""
 
     def __init__(self, sock: socket.socket) -> None:
         self.sock = sock
         self._lock = threading.Lock()
 
-    def send(self, kind: bytes, payloads: Sequence[str | bytes]) -> None:
-        data = b"".join(kind + b" " + (p.encode() if isinstance(p, str) else p) + b"\n" for p in payloads)
+    def send(self, data: bytes) -> None:
         with self._lock:
             self.sock.sendall(data)
 
@@ -248,31 +280,44 @@ def child_main(fd: int) -> int:
     """The apply process: a processor and its kernel warm-up, driven by ``serve``'s socket."""
     from app.db import Database
     from app.kernels import KernelWarmup
+    from app.processing import wakeups
     from app.processing.processor import Processor
+    from app.processing.service import ApplyResult
     from app.system import threads
     from estimators.registry import ESTIMATORS
 
     threads.register()
-
     sock = socket.socket(fileno=fd)
-    lines = sock.makefile("rb")
-    first = lines.readline()
-    if not first.startswith(b"S "):
+    reader = sock.makefile("rb")
+    incoming = frames(reader)
+    first = next(incoming, None)
+    if first is None or first[0] != b"S":
         print("apply process: no settings from serve", file=sys.stderr)
         return 2
-    settings = Settings.model_validate_json(first[2:])
-    _log_to_stderr(settings)
+    settings = Settings.model_validate_json(first[1])
+    _log_to_stderr()
     pipe = _Pipe(sock)
+    watched: set[int] = set()
+
+    def push(res: ApplyResult) -> bool:
+        if res.actuator_pk not in watched:
+            return False
+        pipe.send(frame(b"R", pickle.dumps((res.actuator_pk, res.applied), protocol=pickle.HIGHEST_PROTOCOL)))
+        return True
+
     db = Database(settings.database_url, sqlite_synchronous=settings.sqlite_synchronous)
     kernels = KernelWarmup(list(ESTIMATORS), processes=settings.warm_kernels_processes,
                            enabled=settings.warm_kernels)
-    processor = Processor(db, settings, origin=wakeups.ORIGIN, ready_kinds=kernels.applicable_kinds,
-                          announce=lambda payloads: pipe.send(b"A", payloads), in_lock_applies=False)
+    processor = Processor(
+        db, settings, origin=wakeups.ORIGIN, ready_kinds=kernels.applicable_kinds,
+        announce=lambda payloads: pipe.send(b"".join(frame(b"A", p.encode()) for p in payloads)),
+        push_results=push, in_lock_applies=False,
+    )
     stop = threading.Event()
 
     def _report_kernels() -> None:
         try:
-            pipe.send(b"K", [orjson.dumps(kernels.snapshot())])
+            pipe.send(frame(b"K", orjson.dumps(kernels.snapshot())))
         except OSError:
             stop.set()
 
@@ -284,12 +329,15 @@ def child_main(fd: int) -> int:
 
     def _read() -> None:
         try:
-            for line in lines:
-                kind, _, body = line.rstrip(b"\n").partition(b" ")
+            for kind, body in incoming:
                 if kind == b"L" and body:
                     processor.notify_many([int(p) for p in body.split(b",")])
+                elif kind == b"W":
+                    watched.add(int(body))
+                elif kind == b"U":
+                    watched.discard(int(body))
         except (OSError, ValueError):
-            log.exception("reading serve's wake-ups failed")
+            log.exception("reading serve's messages failed")
         stop.set()  # serve closed the socket (it stopped, or died)
 
     for sig in (signal.SIGTERM, signal.SIGINT):
@@ -303,7 +351,7 @@ def child_main(fd: int) -> int:
             if not kernels.done.is_set():
                 _report_kernels()  # progress ("compiling", its seconds) for /readyz
             try:
-                pipe.send(b"M", [orjson.dumps(own_families())])
+                pipe.send(frame(b"M", orjson.dumps(own_families())))
             except OSError:
                 stop.set()
             if not processor.running:
@@ -359,7 +407,7 @@ def merged_families(own: Iterable[Metric], child: list[Any]) -> list[Metric]:
     return list(merged.values())
 
 
-def _log_to_stderr(settings: Settings) -> None:
+def _log_to_stderr() -> None:
     logger = logging.getLogger("fleethealth")
     if not logger.handlers:
         handler = logging.StreamHandler()

@@ -140,6 +140,7 @@ class Processor:
         ready_kinds: Callable[[], frozenset[str] | None] = lambda: None,
         announce: Callable[[list[str]], None] | None = None,
         forward: Callable[[Sequence[int]], None] | None = None,
+        push_results: Callable[[ApplyResult], bool] | None = None,
         in_lock_applies: bool = True,
     ) -> None:
         self.db = db
@@ -155,6 +156,8 @@ class Processor:
         # SQLite apply process: sends the applied channel's payloads to the serving process
         # after each commit (app/processing/apply_process.py).
         self.announce = announce
+        # ... and, before, the results of a stream whose connections are there (True when sent).
+        self.push_results = push_results
         # A process that does not apply (processor_enabled false) and whose wake-ups reach the
         # applying process directly (SQLite apply process): where notify() sends them.
         self.forward = forward
@@ -252,14 +255,23 @@ class Processor:
         with self.db.read() as s:
             return repository.applied_mark(s, actuator_pk)
 
-    def applied_elsewhere(self, actuator_pk: int, applied_seq: int, events: list[dict[str, Any]]) -> None:
+    def applied_elsewhere(
+        self, actuator_pk: int, applied_seq: int, events: list[dict[str, Any]], wake: bool = True
+    ) -> None:
         """Another process committed an apply of the stream (its notification): waiters and
-        stream connections hear of it, fleet subscribers get its events."""
+        stream connections hear of it (``wake``: they read their results back; not when the
+        results were pushed, :meth:`results_elsewhere`), fleet subscribers get its events."""
         self._remember_applied(actuator_pk, applied_seq)
         self.hub.mark_applied(actuator_pk, applied_seq)
-        self.hub.wake_stream(actuator_pk)
+        if wake:
+            self.hub.wake_stream(actuator_pk)
         if events and self.hub.has_fleet_subscribers():
             self.hub.publish_fleet(events)
+
+    def results_elsewhere(self, actuator_pk: int, items: list[Any]) -> None:
+        """Results another process applied and sent (SQLite's apply process): pushed to the
+        stream's connections, as this process's own are."""
+        self.hub.publish_applied(actuator_pk, items)
 
     def resync(self) -> None:
         """Notifications may have been missed (the listener reconnected): every waiter and
@@ -357,7 +369,7 @@ class Processor:
             if res.more:
                 again.append(res.actuator_pk)
         if self.announce is not None and results:
-            self._announce([p for res in results for p in self._announcements(None, res)])
+            self._announce(results)
         for pk, err in errors:
             if isinstance(err, StateUnreadable):
                 done = replayed.setdefault(pk, set())
@@ -561,21 +573,28 @@ class Processor:
         for pk in pending:
             self._recheck_at[pk] = due
 
-    def _announce(self, payloads: list[str]) -> None:
-        """Send payloads of the applied channel after their commit (apply process); a lost one
-        delays a waiter until the serving process re-reads (it does when the process restarts)."""
+    def _announce(self, results: list[ApplyResult]) -> None:
+        """Send the applies to the serving process after their commit (apply process): the
+        results of watched streams, then the applied channel's payloads. A lost one delays a
+        waiter until the serving process re-reads (it does when the process restarts)."""
         assert self.announce is not None
         try:
+            payloads: list[str] = []
+            for res in results:
+                pushed = self.push_results is not None and self.push_results(res)
+                payloads.extend(self._announcements(None, res, pushed=pushed))
             self.announce(payloads)
         except Exception:
-            log.exception("announcing %d applies failed", len(payloads))
+            log.exception("announcing %d applies failed", len(results))
 
-    def _announcements(self, session: Session | None, res: ApplyResult) -> list[str]:
-        """The NOTIFY payloads of an apply: its mark and its fleet events, split to fit."""
+    def _announcements(self, session: Session | None, res: ApplyResult, *, pushed: bool = False) -> list[str]:
+        """The NOTIFY payloads of an apply: its mark and its fleet events, split to fit
+        (``"r": 1``: its results were sent ahead)."""
         meta = self._stream_meta(res.actuator_pk, session)
         events = fleet_events(meta, res)
+        extra = {"r": 1} if pushed else {}
         return [
-            orjson.dumps({"o": self.origin, "pk": res.actuator_pk, "seq": res.last_applied_seq, "ev": chunk},
+            orjson.dumps({"o": self.origin, "pk": res.actuator_pk, "seq": res.last_applied_seq, "ev": chunk, **extra},
                          option=orjson.OPT_SERIALIZE_NUMPY).decode()
             for chunk in _chunks(events, NOTIFY_MAX_BYTES)
         ]
@@ -662,8 +681,11 @@ class Processor:
         if failure is not None:
             self.hub.mark_failed(actuator_pk, failure)
             if self.announce is not None:
-                self._announce([orjson.dumps({"o": self.origin, "pk": actuator_pk,
-                                              "failure": failure[: NOTIFY_MAX_BYTES // 2]}).decode()])
+                payload = {"o": self.origin, "pk": actuator_pk, "failure": failure[: NOTIFY_MAX_BYTES // 2]}
+                try:
+                    self.announce([orjson.dumps(payload).decode()])
+                except Exception:
+                    log.exception("announcing the failure of stream %s failed", actuator_pk)
 
     # ------------------------------------------------------------------ publishing
     def _publish(self, res: ApplyResult) -> None:

@@ -128,24 +128,13 @@ class Listener:
                 if origin != self.origin and self.on_logged is not None and pks:
                     self.on_logged([int(p) for p in pks.split(",")])
                 return
-            dispatch_applied(payload, self.origin, self.on_applied, self.on_failed)
+            doc = orjson.loads(payload)
+            if doc.get("o") == self.origin:
+                return
+            if "failure" in doc:
+                if self.on_failed is not None:
+                    self.on_failed(int(doc["pk"]), str(doc["failure"]))
+            elif self.on_applied is not None:
+                self.on_applied(int(doc["pk"]), int(doc["seq"]), list(doc.get("ev") or []))
         except Exception:
             log.exception("bad notification on %s: %.200s", channel, payload)
-
-
-def dispatch_applied(
-    payload: str | bytes,
-    origin: str,
-    on_applied: Callable[[int, int, list[dict[str, Any]]], None] | None,
-    on_failed: Callable[[int, str], None] | None,
-) -> None:
-    """Hand one payload of the applied channel to its callback (ignored when sent by
-    ``origin``, this process)."""
-    doc = orjson.loads(payload)
-    if doc.get("o") == origin:
-        return
-    if "failure" in doc:
-        if on_failed is not None:
-            on_failed(int(doc["pk"]), str(doc["failure"]))
-    elif on_applied is not None:
-        on_applied(int(doc["pk"]), int(doc["seq"]), list(doc.get("ev") or []))

@@ -192,6 +192,9 @@ class Hub:
         self._fleet: set[Subscription] = set()
         # ?wait=: stream -> waiters (seq, future) resolved when an apply commits or it fails.
         self._waiters: dict[int, set[Waiter]] = {}
+        #: Called (stream, True) when a stream gets its first connection, (stream, False) when it
+        #: loses its last (SQLite's apply process pushes the results of such streams here).
+        self.on_watch: Callable[[int, bool], None] | None = None
 
     # ------------------------------------------------------------------ applied marks
     def watch_applied(self, actuator_pk: int, seq: int) -> Waiter:
@@ -238,6 +241,11 @@ class Hub:
         with self._lock:
             return list(self._waiters)
 
+    def streams(self) -> list[int]:
+        """Streams with at least one connection here."""
+        with self._lock:
+            return list(self._streams)
+
     def wake_all_streams(self) -> None:
         with self._lock:
             pks = list(self._streams)
@@ -256,7 +264,10 @@ class Hub:
     def subscribe_stream(self, actuator_pk: int, maxsize: int) -> Subscription:
         sub = Subscription(asyncio.get_running_loop(), asyncio.Queue(maxsize))
         with self._lock:
+            first = actuator_pk not in self._streams
             self._streams.setdefault(actuator_pk, set()).add(sub)
+        if first and self.on_watch is not None:
+            self.on_watch(actuator_pk, True)
         return sub
 
     def subscribe_fleet(
@@ -294,8 +305,12 @@ class Hub:
             self._fleet.discard(sub)
             for subs in self._streams.values():
                 subs.discard(sub)
-            for pk in [pk for pk, subs in self._streams.items() if not subs]:
+            gone = [pk for pk, subs in self._streams.items() if not subs]
+            for pk in gone:
                 del self._streams[pk]
+        if self.on_watch is not None:
+            for pk in gone:
+                self.on_watch(pk, False)
 
     # ------------------------------------------------------------------ publishing
     def has_fleet_subscribers(self) -> bool:
