@@ -80,6 +80,10 @@ KIND_MIN_BLOCKS = 20  # a history shorter than 1 s leaves the kind undetermined
 # that surface's onset (its probability passes the onset level some tenths of a second after
 # its fault begins, and from then on its effect leaks into this fault's estimate)
 KIND_CUT_MARGIN_S = 0.5
+# a condition "held for T s" is met when the time since its run started reaches T less this
+# tolerance: sample times are floats (k * 0.01 s: 20.06 - 20.01 is 0.04999999999999716), and
+# without it a 0.05 s hold at 100 Hz took 5 or 6 samples, by the rounding of the absolute times
+HOLD_TOL_S = 1e-9
 KIND_PENDING = 0.0
 KIND_STUCK = 1.0
 KIND_OSCILLATING = 2.0
@@ -896,7 +900,7 @@ def _decide(
                 dec[h, D_LLR] += llr
             _kind_add(dec, kbuf, h, t, kval, defl_var)
             hold = cfg[CFG_HOLD_ACTIVE_S] if others_active else cfg[CFG_HOLD_S]
-            if t - dec[h, D_ABOVE_T] >= hold and dec[h, D_LLR] >= cfg[CFG_MIN_LLR]:
+            if t - dec[h, D_ABOVE_T] >= hold - HOLD_TOL_S and dec[h, D_LLR] >= cfg[CFG_MIN_LLR]:
                 dec[h, D_ACTIVE] = 1.0
                 dec[h, D_DETECTED_T] = t
                 dec[h, D_BELOW_T] = np.nan
@@ -924,7 +928,7 @@ def _decide(
     if back:
         if math.isnan(dec[h, D_BELOW_T]):
             dec[h, D_BELOW_T] = t
-        if t - dec[h, D_BELOW_T] >= cfg[CFG_CLEAR_HOLD_S]:
+        if t - dec[h, D_BELOW_T] >= cfg[CFG_CLEAR_HOLD_S] - HOLD_TOL_S:
             if dec[h, D_BLK_IDX] < KIND_BLOCKS:
                 _kind_pad(cfg, dec, kbuf, h, t)
                 _judge_kind(cfg, dec, kbuf, h)

@@ -739,6 +739,50 @@ def test_detection_needs_likelihood_ratio_evidence_over_the_hold() -> None:
     assert codes == []
 
 
+def test_holds_count_samples_whatever_the_rounding_of_the_sample_times() -> None:
+    """A detection hold of 0.05 s at 100 Hz is 5 sample periods after the run's first sample and
+    a clearance hold of 1 s is 100, wherever the run starts in a stream timed ``k * 0.01`` s:
+    ``20.06 - 20.01`` is 0.04999999999999716 in floating point, and the comparison without a
+    tolerance waited one more sample for such starts (5 or 6 samples by the absolute time)."""
+    config = stmmae.parse_config({})
+    dt = 0.01
+    t_all = np.arange(6000) * dt  # the simulator's and a logger's sample times
+    hold_n = int(round(config.hold_s / dt))
+    clear_n = int(round(config.clear_hold_s / dt))
+    short = [k for k in range(2000, 2040) if t_all[k + hold_n] - t_all[k] < config.hold_s]
+    assert short  # such starts exist: the case the tolerance is for
+    for start in range(2000, 2040):
+        cfg, dec, kbuf, a_s, a_c = _decision_start(config, dt)
+        detected = cleared = None
+        for k in range(start - 3, start + 300):
+            faulty = k >= start and k < start + 150
+            code = kern._decide(
+                cfg,
+                dec,
+                kbuf,
+                0,
+                float(t_all[k]),
+                dt if k > start - 3 else 0.0,
+                0.95 if faulty else 0.01,
+                1.0,
+                math.radians(8.0 if faulty else 0.0),
+                math.radians(0.57) ** 2,
+                0.0,
+                1.0,  # no smoothing: the deflection gate holds from the first faulty sample
+                1.0,
+                2.0 if faulty else 0.0,
+                False,
+                math.radians(8.0),
+            )
+            if code == kern.EV_DETECTED:
+                detected = k
+            elif code == kern.EV_CLEARED:
+                cleared = k
+                kern.reset_after_clearance(dec, 0)
+        assert detected == start + hold_n, start
+        assert cleared == start + 150 + clear_n, start
+
+
 def test_deflection_gate_in_posterior_standard_deviations() -> None:
     """With ``min_deflection_error_std`` the estimate must be that many of its own posterior
     standard deviations off the command (and at least ``min_deflection_error_deg``): 2 deg off
