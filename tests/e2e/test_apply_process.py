@@ -16,12 +16,19 @@ from fleethealth_client import FleetHealthClient
 
 from tests.conftest import make_series
 from tests.e2e.conftest import LiveServer
-from tests.e2e.test_crash_recovery import BATCH, FAKF, _feed, _results, _wait_applied
+from tests.e2e.test_crash_recovery import (
+    BATCH,
+    FAKF,
+    N_BATCHES,
+    _feed,
+    _results,
+    _wait_applied,
+    reference_and_target,
+)
 from tests.e2e.test_workers import FleetSubscriber
 
 pytestmark = pytest.mark.e2e
 
-N_BATCHES = 24
 CHILD_MARK = b"app.processing.apply_process"
 
 
@@ -94,13 +101,7 @@ def test_the_processor_runs_in_a_child_and_serve_reports_its_work(live_server: L
 
 def test_sigkill_the_apply_process_mid_stream(live_server: LiveServer) -> None:
     server = live_server
-    series = make_series(N_BATCHES * BATCH, seed=42)
-    with FleetHealthClient(server.url, server.api_key) as client:
-        client.create_aircraft("E2E")
-        client.create_actuator("E2E", "ref", estimators=FAKF)
-        client.create_actuator("E2E", "k", estimators=FAKF)
-    _feed(server, "ref", range(N_BATCHES), series)
-    _wait_applied(server, "ref", N_BATCHES)
+    series = reference_and_target(server, seed=42)
 
     step = N_BATCHES // 4
     with FleetSubscriber(server) as sub:

@@ -85,16 +85,23 @@ def test_sigkill_mid_stream_then_restart_gives_the_same_outputs(live_server: Liv
             np.array(ref_out["series"][name], dtype=float), np.array(got_out["series"][name], dtype=float))
 
 
-def test_kill_during_apply_repeatedly(live_server: LiveServer) -> None:
-    """Kill the server several times while it is applying; no batch is lost or applied twice."""
-    server = live_server
-    series = make_series(N_BATCHES * BATCH, seed=22)
+def reference_and_target(server: LiveServer, seed: int):  # type: ignore[no-untyped-def]
+    """Actuators ``ref`` (fed all of a series and applied, uninterrupted) and ``k`` (empty);
+    the series."""
+    series = make_series(N_BATCHES * BATCH, seed=seed)
     with FleetHealthClient(server.url, server.api_key) as client:
         client.create_aircraft("E2E")
         client.create_actuator("E2E", "ref", estimators=FAKF)
         client.create_actuator("E2E", "k", estimators=FAKF)
     _feed(server, "ref", range(N_BATCHES), series)
     _wait_applied(server, "ref", N_BATCHES)
+    return series
+
+
+def test_kill_during_apply_repeatedly(live_server: LiveServer) -> None:
+    """Kill the server several times while it is applying; no batch is lost or applied twice."""
+    server = live_server
+    series = reference_and_target(server, seed=22)
     step = N_BATCHES // 4
     for part in range(4):
         _feed(server, "k", range(part * step, (part + 1) * step), series)
