@@ -7,8 +7,9 @@ queue for it on a mutex (woken the moment it is free, in arrival order) instead 
 file lock through ``busy_timeout``; the log writer and the processor are the only frequent
 writers. Across processes (``serve`` and its apply process, or a CLI command next to a server)
 the writer holding that mutex then takes an exclusive ``flock`` on ``<database>.writelock``,
-which blocks in the kernel until the other process's write transaction ends: no process polls. On PostgreSQL the per-stream lease is a row lock
-(``SELECT ... FOR UPDATE``) on the actuator row.
+which blocks in the kernel until the other process's write transaction ends: no process polls.
+On PostgreSQL the per-stream lease is a row lock (``SELECT ... FOR UPDATE``) on the actuator
+row.
 """
 
 from __future__ import annotations
@@ -312,29 +313,27 @@ class Database:
     @contextmanager
     def write_if_free(self, *, durable: bool = True) -> Iterator[Session | None]:
         """SQLite: :meth:`write` when no other writer of this process holds or waits for the
-        write lock, else None at once (the caller does its work another way). PostgreSQL:
-        always None (its writers do not share one lock)."""
+        write lock and no other process holds it, else None at once (the caller does its work
+        another way). PostgreSQL: always None (its writers do not share one lock)."""
         if self._write_mutex is None or not self._write_mutex.try_enter():
             yield None
             return
         try:
             lock = self._file_lock
-            if lock is not None and not self._held_here():
-                if not lock.acquire(blocking=False):  # another process writes
-                    yield None
-                    return
+            take = lock is not None and not self._held_here()
+            if take and lock is not None and not lock.acquire(blocking=False):
+                yield None  # another process writes
+                return
+            if take:
                 self._holder = threading.get_ident()
-                try:
-                    factory = self._write if durable else self._write_recomputable
-                    with factory() as session, session.begin():
-                        yield session
-                finally:
+            try:
+                factory = self._write if durable else self._write_recomputable
+                with factory() as session, session.begin():
+                    yield session
+            finally:
+                if take and lock is not None:
                     self._holder = None
                     lock.release()
-                return
-            factory = self._write if durable else self._write_recomputable
-            with factory() as session, session.begin():
-                yield session
         finally:
             self._write_mutex.__exit__()
 
