@@ -24,7 +24,9 @@ raises writes nothing), then one statement per table stores the whole group; sho
 raise, it is rolled back to a savepoint and the streams are stored one by one, each inside its
 own savepoint, so that one stream's error rolls back only that stream. Subscribers and ``?wait=`` hear of each apply after the
 commit. On PostgreSQL the transaction also carries a ``NOTIFY`` per stream (its applied mark and its
-fleet events), delivered to API processes when it commits (:mod:`app.processing.wakeups`). On
+fleet events), delivered to API processes when it commits (:mod:`app.processing.wakeups`); in
+SQLite's apply process the same payloads go to ``serve`` after the commit
+(:mod:`app.processing.apply_process`). On
 SQLite the estimators run in a read transaction, outside the one write lock, and a short write
 transaction stores them; a small apply while nobody holds or waits for that lock is one write
 transaction (``_apply_in_lock``).
