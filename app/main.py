@@ -66,9 +66,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         # SQLite: the processor may run in a child process (APPLY_PROCESS=on); this process
         # then only logs, serves and hears of the applies (app/processing/apply_process.py).
         child = None
-        local = settings
-        if settings.processor_enabled and settings.apply_process == "on" and db.is_sqlite and db.is_file:
-            local = settings.model_copy(update={"processor_enabled": False})
+        in_child = settings.processor_enabled and settings.apply_process == "on" and db.is_sqlite and db.is_file
+        local = settings.model_copy(update={"processor_enabled": False}) if in_child else settings
         kernels = KernelWarmup(
             list(ESTIMATORS),
             processes=settings.warm_kernels_processes,
@@ -82,7 +81,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             origin=wakeups.ORIGIN,
             ready_kinds=kernels.applicable_kinds,
         )
-        if local is not settings:
+        if in_child:
             child = ApplyProcess(settings, kinds=list(ESTIMATORS), on_applied=processor.applied_elsewhere,
                                  on_failed=processor.hub.mark_failed, on_results=processor.results_elsewhere,
                                  on_restart=processor.resync, watched=processor.hub.streams)

@@ -51,6 +51,7 @@ from prometheus_client.metrics_core import Metric
 from prometheus_client.samples import Sample
 
 from app.config import Settings
+from app.processing import wakeups
 
 log = logging.getLogger("fleethealth.apply_process")
 
@@ -239,11 +240,7 @@ class ApplyProcess:
     def _dispatch(self, kind: bytes, body: bytes) -> None:
         try:
             if kind == b"A":
-                doc = orjson.loads(body)
-                if "failure" in doc:
-                    self.on_failed(int(doc["pk"]), str(doc["failure"]))
-                else:
-                    self.on_applied(int(doc["pk"]), int(doc["seq"]), list(doc.get("ev") or []), not doc.get("r"))
+                wakeups.dispatch_applied(body, wakeups.ORIGIN, self.on_applied, self.on_failed)
             elif kind == b"R":
                 pk, items = pickle.loads(body)  # noqa: S301 (our own child, a private socket pair)
                 self.on_results(int(pk), items)
@@ -280,7 +277,6 @@ def child_main(fd: int) -> int:
     """The apply process: a processor and its kernel warm-up, driven by ``serve``'s socket."""
     from app.db import Database
     from app.kernels import KernelWarmup
-    from app.processing import wakeups
     from app.processing.processor import Processor
     from app.processing.service import ApplyResult
     from app.system import threads

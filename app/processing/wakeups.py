@@ -71,7 +71,7 @@ class Listener:
         chans: Channels,
         *,
         on_logged: Callable[[Sequence[int]], None] | None = None,
-        on_applied: Callable[[int, int, list[dict[str, Any]]], None] | None = None,
+        on_applied: Callable[[int, int, list[dict[str, Any]], bool], None] | None = None,
         on_failed: Callable[[int, str], None] | None = None,
         on_resync: Callable[[], object] | None = None,
         origin: str = ORIGIN,
@@ -128,13 +128,26 @@ class Listener:
                 if origin != self.origin and self.on_logged is not None and pks:
                     self.on_logged([int(p) for p in pks.split(",")])
                 return
-            doc = orjson.loads(payload)
-            if doc.get("o") == self.origin:
-                return
-            if "failure" in doc:
-                if self.on_failed is not None:
-                    self.on_failed(int(doc["pk"]), str(doc["failure"]))
-            elif self.on_applied is not None:
-                self.on_applied(int(doc["pk"]), int(doc["seq"]), list(doc.get("ev") or []))
+            dispatch_applied(payload, self.origin, self.on_applied, self.on_failed)
         except Exception:
             log.exception("bad notification on %s: %.200s", channel, payload)
+
+
+def dispatch_applied(
+    payload: str | bytes,
+    origin: str,
+    on_applied: Callable[[int, int, list[dict[str, Any]], bool], None] | None,
+    on_failed: Callable[[int, str], None] | None,
+) -> None:
+    """Hand one payload of the applied channel (``Processor._announcements``) to its callback:
+    ``on_applied(pk, seq, events, wake)``, ``wake`` false when the stream's results were sent
+    ahead (``"r": 1``, SQLite's apply process); ``on_failed(pk, reason)``. Ignored when sent by
+    ``origin``, this process."""
+    doc = orjson.loads(payload)
+    if doc.get("o") == origin:
+        return
+    if "failure" in doc:
+        if on_failed is not None:
+            on_failed(int(doc["pk"]), str(doc["failure"]))
+    elif on_applied is not None:
+        on_applied(int(doc["pk"]), int(doc["seq"]), list(doc.get("ev") or []), not doc.get("r"))

@@ -247,9 +247,7 @@ class Hub:
             return list(self._streams)
 
     def wake_all_streams(self) -> None:
-        with self._lock:
-            pks = list(self._streams)
-        for pk in pks:
+        for pk in self.streams():
             self.wake_stream(pk)
 
     def wake_stream(self, actuator_pk: int) -> None:
