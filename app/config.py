@@ -48,6 +48,11 @@ class Settings(BaseSettings):
     # ... and no more streams join a transaction once it has run this long (it holds the write
     # lock that acknowledgements wait for).
     processor_txn_budget_s: float = Field(default=0.005, gt=0)
+    # SQLite: the same bound for a group computed outside the write lock (a read transaction,
+    # then a write transaction that only stores): it holds no lock, so it may run longer, and a
+    # longer group spreads its fixed cost (two transactions, the reads of its streams' rows)
+    # over more streams when many streams apply at once.
+    processor_compute_budget_s: float = Field(default=0.05, gt=0)
     # Group commit of the telemetry log: appends committed in one transaction at most.
     log_writer_max_group: int = Field(default=256, gt=0)
     # PostgreSQL: wake-ups, applied marks and fleet events cross processes by LISTEN/NOTIFY

@@ -51,12 +51,18 @@ from app.telemetry.writer import LogWriter, _Append  # noqa: E402
 KEY = "bench-admin-key-abcdefghijklmnop"
 
 
-def _batch(k: int) -> ParsedBatch:
-    return ParsedBatch(f"m{k}", np.array([1.7e9 + k * 0.01]), {"current": np.array([0.3]), "voltage": np.array([-8.0])})
+def _batch(k: int, samples: int) -> ParsedBatch:
+    t = 1.7e9 + (k * samples + np.arange(samples)) * 0.01
+    rng = np.random.default_rng(k)
+    return ParsedBatch(f"m{k}", t, {"current": 0.3 + 0.01 * rng.standard_normal(samples),
+                                    "voltage": -8.0 + 0.1 * rng.standard_normal(samples)})
 
 
-def measure(n: int, streams: int, profile: bool, profile_sort: str = "tottime") -> tuple[float, float]:
-    """CPU ms per appended batch and per applied batch over ``n`` rounds of ``streams`` streams."""
+def measure(n: int, streams: int, profile: bool, profile_sort: str = "tottime", samples: int = 1,
+            apply_process: bool = False) -> tuple[float, float]:
+    """CPU ms per appended batch and per applied batch over ``n`` rounds of ``streams`` streams
+    of ``samples``-sample batches (``apply_process``: the processor as the SQLite apply process
+    runs it: the batches read from the log, computed outside the write lock)."""
     with tempfile.TemporaryDirectory(prefix="fleethealth-bench-apply-") as tmp:
         url = f"sqlite:///{tmp}/apply.db"
         upgrade(url)
@@ -70,12 +76,14 @@ def measure(n: int, streams: int, profile: bool, profile_sort: str = "tottime") 
         db = Database(url)
         with db.read() as s:
             pks = [int(pk) for pk in s.scalars(select(Actuator.id).order_by(Actuator.id))]
-        processor = Processor(db, Settings(database_url=url, processor_max_batches_per_txn=1))
-        # As in the server: the processor finds the batches its process logged decoded.
-        writer = LogWriter(db, recent=processor.recent)
+        processor = Processor(db, Settings(database_url=url, processor_max_batches_per_txn=1),
+                              in_lock_applies=not apply_process)
+        # As in the server: the processor finds the batches its process logged decoded (not the
+        # apply process, a process of its own).
+        writer = LogWriter(db, recent=None if apply_process else processor.recent)
 
         def log_round(k: int) -> None:
-            writer._write([_Append(pk, _batch(k)) for pk in pks])  # one group, in this thread
+            writer._write([_Append(pk, _batch(k, samples)) for pk in pks])  # one group, in this thread
 
         def apply_round() -> None:
             assert processor.apply_streams(pks) == streams
@@ -102,9 +110,10 @@ def measure(n: int, streams: int, profile: bool, profile_sort: str = "tottime") 
     return 1e3 * log_cpu / (n * streams), 1e3 * apply_cpu / (n * streams)
 
 
-def _child(tree: str, n: int, streams: int) -> tuple[float, float]:
+def _child(tree: str, n: int, streams: int, extra: list[str]) -> tuple[float, float]:
     env = {**os.environ, "PYTHONPATH": tree}
-    out = subprocess.run([sys.executable, __file__, "--n", str(n), "--streams", str(streams), "--json", "--tree", tree],
+    out = subprocess.run([sys.executable, __file__, "--n", str(n), "--streams", str(streams), *extra, "--json",
+                          "--tree", tree],
                          env=env, cwd=tree, capture_output=True, text=True, check=True).stdout
     figures = json.loads(out.strip().splitlines()[-1])
     return figures["log_ms"], figures["apply_ms"]
@@ -114,6 +123,10 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--n", type=int, default=300, help="rounds")
     parser.add_argument("--streams", type=int, default=1)
+    parser.add_argument("--samples", type=int, default=1, help="samples per batch")
+    parser.add_argument("--apply-process", action="store_true",
+                        help="the processor as SQLite's apply process runs it (batches read from the log, "
+                             "computed outside the write lock)")
     parser.add_argument("--profile", nargs="?", const="tottime", help="print a cProfile of the applies, "
                         "sorted by this column (tottime, cumulative)")
     parser.add_argument("--baseline", help="another source tree, measured side by side")
@@ -122,21 +135,27 @@ def main() -> int:
     parser.add_argument("--tree", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.json:
-        log_ms, apply_ms = measure(args.n, args.streams, False)
+        log_ms, apply_ms = measure(args.n, args.streams, False, samples=args.samples,
+                                   apply_process=args.apply_process)
         print(json.dumps({"log_ms": log_ms, "apply_ms": apply_ms}))
         return 0
     if not args.baseline:
-        log_ms, apply_ms = measure(args.n, args.streams, bool(args.profile), args.profile or "tottime")
-        print(f"{args.streams} stream(s), one-sample batches, {args.n} rounds")
+        log_ms, apply_ms = measure(args.n, args.streams, bool(args.profile), args.profile or "tottime",
+                                   args.samples, args.apply_process)
+        print(f"{args.streams} stream(s), {args.samples}-sample batches, {args.n} rounds"
+              + (", as the apply process" if args.apply_process else ""))
         print(f"log commit, per appended batch: {log_ms:.3f} ms CPU")
         print(f"apply, per applied batch:       {apply_ms:.3f} ms CPU")
         return 0
     base: list[tuple[float, float]] = []
     new: list[tuple[float, float]] = []
+    extra = ["--samples", str(args.samples)] + (["--apply-process"] if args.apply_process else [])
     for _ in range(args.rounds):
-        base.append(_child(str(Path(args.baseline).resolve()), args.n, args.streams))
-        new.append(_child(str(ROOT), args.n, args.streams))
-    print(f"{args.streams} stream(s), one-sample batches, {args.n} rounds; median of {args.rounds} alternations")
+        base.append(_child(str(Path(args.baseline).resolve()), args.n, args.streams, extra))
+        new.append(_child(str(ROOT), args.n, args.streams, extra))
+    print(f"{args.streams} stream(s), {args.samples}-sample batches, {args.n} rounds"
+          + (", as the apply process" if args.apply_process else "")
+          + f"; median of {args.rounds} alternations")
     print(f"{'ms CPU':34s} {'baseline':>9s} {'this tree':>9s} {'ratio':>6s}")
     for i, name in enumerate(("log commit, per appended batch", "apply, per applied batch")):
         b = statistics.median(f[i] for f in base)

@@ -433,10 +433,10 @@ class Processor:
         return service.load_group(session, pks[i : i + LOAD_CHUNK], is_sqlite=self.db.is_sqlite,
                                   max_batches=self.settings.processor_max_batches_per_txn)
 
-    def _over(self, i: int, t0: float, budget: int) -> bool:
-        # Bound the group's length: its write transaction holds the database's write lock
-        # (SQLite) or the streams' locks (PostgreSQL), and every stream of it waits for its commit.
-        return budget <= 0 or (i > 0 and time.perf_counter() - t0 > self.settings.processor_txn_budget_s)
+    def _over(self, i: int, t0: float, budget: int, seconds: float) -> bool:
+        # Bound the group's length: every stream of it waits for its commit, and a write
+        # transaction holds the database's write lock (SQLite) or the streams' locks (PostgreSQL).
+        return budget <= 0 or (i > 0 and time.perf_counter() - t0 > seconds)
 
     def _prepare(
         self, session: Session, pks: list[int], t0: float, errors: list[tuple[int, Exception]], idle: list[int]
@@ -448,7 +448,7 @@ class Processor:
         limits = self._limits()
         loaded = service.GroupLoad({}, {}, {})
         for i, pk in enumerate(pks):
-            if self._over(i, t0, budget):
+            if self._over(i, t0, budget, self.settings.processor_compute_budget_s):
                 return prepared, pks[i:]
             loaded = self._load(session, pks, i, loaded)
             try:
@@ -479,7 +479,7 @@ class Processor:
         limits = self._limits()
         loaded = first or service.GroupLoad({}, {}, {})
         for i, pk in enumerate(pks):
-            if self._over(i, t0, budget):
+            if self._over(i, t0, budget, self.settings.processor_txn_budget_s):
                 left = pks[i:]
                 break
             if i or first is None:

@@ -282,6 +282,40 @@ def test_a_group_is_stored_with_one_statement_per_table_and_one_savepoint(
     assert statements.count("INSERT health_windows") <= 1
 
 
+@pytest.mark.parametrize(("compute_budget_s", "groups"), [(60.0, 1), (1e-9, 3)])
+def test_a_group_computed_outside_the_lock_is_bounded_by_the_compute_budget(
+    api_noproc: Api, db_url: str, compute_budget_s: float, groups: int
+) -> None:
+    """SQLite, computed outside the write lock (as the apply process does): the group's length
+    is bounded by ``processor_compute_budget_s``, not by the write transaction's
+    ``processor_txn_budget_s``: with the latter spent at once, the three streams still share
+    one group while the compute budget lasts, and take one group each when it does not."""
+    from sqlalchemy import event
+
+    if not db_url.startswith("sqlite"):
+        pytest.skip("PostgreSQL applies in one transaction under the streams' row locks")
+
+    acts = ["s0", "s1", "s2"]
+    _logged_streams(api_noproc, acts)
+    db = Database(db_url)
+    pks = _pks(db)
+    stores: list[str] = []
+
+    def seen(conn, cursor, statement, params, context, executemany):  # type: ignore[no-untyped-def]
+        if re.match(r"\s*UPDATE\s+streams\b", statement, re.IGNORECASE):
+            stores.append(statement)
+
+    event.listen(db.engine, "before_cursor_execute", seen)
+    settings = make_settings(db_url, processor_txn_budget_s=1e-9, processor_compute_budget_s=compute_budget_s)
+    processor = Processor(db, settings, in_lock_applies=False)
+    assert processor.apply_streams([pks[a] for a in acts]) == 6
+    with db.read() as session:
+        marks = sorted(session.scalars(select(Stream.last_applied_seq)))
+    db.dispose()
+    assert marks == [2, 2, 2]
+    assert len(stores) == groups  # one UPDATE of the streams per group
+
+
 def test_a_group_whose_store_fails_is_stored_stream_by_stream(
     api_noproc: Api, db_url: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
