@@ -177,7 +177,8 @@ def test_many_streams_applied_in_one_transaction_and_a_failing_one_alone_rolls_b
     assert api_noproc.app.state.kernels_warm.wait(300)
     monkeypatch.setattr(fakf, "step", step)
     # A generous time budget: the point is that the three streams share one transaction.
-    processor = Processor(db, make_settings(db_url, processor_max_attempts=1, processor_txn_budget_s=60.0))
+    processor = Processor(db, make_settings(db_url, processor_max_attempts=1, processor_txn_budget_s=60.0,
+                                         processor_compute_budget_s=60.0))
     writes: list[int] = []
     real_write = db.write
 
@@ -270,7 +271,8 @@ def test_a_group_is_stored_with_one_statement_per_table_and_one_savepoint(
             statements.append(f"{m.group(1).split()[0].upper()} {m.group(2)}")
 
     event.listen(db.engine, "before_cursor_execute", seen)
-    processor = Processor(db, make_settings(db_url, processor_txn_budget_s=60.0))
+    processor = Processor(db, make_settings(db_url, processor_txn_budget_s=60.0,
+                                         processor_compute_budget_s=60.0))
     assert processor.apply_streams([pks[a] for a in acts]) == 6
     with db.read() as session:
         marks = sorted(session.scalars(select(Stream.last_applied_seq)))
@@ -338,7 +340,8 @@ def test_a_group_whose_store_fails_is_stored_stream_by_stream(
 
     monkeypatch.setattr(events, "record_apply", record)
     splits = processor_module.GROUP_STORE_SPLITS._value.get()
-    processor = Processor(db, make_settings(db_url, processor_max_attempts=1, processor_txn_budget_s=60.0))
+    processor = Processor(db, make_settings(db_url, processor_max_attempts=1, processor_txn_budget_s=60.0,
+                                         processor_compute_budget_s=60.0))
     assert processor.apply_streams([pks[a] for a in acts]) == 4
     with db.read() as session:
         marks = {pk: (seq, failure) for pk, seq, failure in
