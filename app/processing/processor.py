@@ -477,7 +477,7 @@ class Processor:
         left: list[int] = []
         budget = self.settings.processor_max_samples_per_txn
         # SQLite: this transaction holds the write lock that the log's acknowledgements wait
-        # for; PostgreSQL: the streams' row locks, which only other appliers take (and skip).
+        # for; PostgreSQL: the streams' row locks, which they do not (other appliers skip them).
         seconds = self.settings.processor_txn_budget_s if self.db.is_sqlite else self.settings.processor_compute_budget_s
         limits = self._limits()
         loaded = first or service.GroupLoad({}, {}, {})
