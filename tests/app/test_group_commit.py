@@ -253,16 +253,11 @@ def _logged_streams(api: Api, acts: list[str]) -> None:
             assert r.status_code == 202, r.text
 
 
-def test_a_group_is_stored_with_one_statement_per_table_and_one_savepoint(
-    api_noproc: Api, db_url: str, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """Not a savepoint and a set of statements per stream: one of each for the whole group."""
+def _writes_seen(db: Database) -> list[str]:
+    """The write statements the engine runs from now on, as ``"UPDATE streams"``,
+    ``"INSERT health_windows"``, ``"SAVEPOINT sa_savepoint_1"``."""
     from sqlalchemy import event
 
-    acts = ["s0", "s1", "s2"]
-    _logged_streams(api_noproc, acts)
-    db = Database(db_url)
-    pks = _pks(db)
     statements: list[str] = []
 
     def seen(conn, cursor, statement, params, context, executemany):  # type: ignore[no-untyped-def]
@@ -271,6 +266,18 @@ def test_a_group_is_stored_with_one_statement_per_table_and_one_savepoint(
             statements.append(f"{m.group(1).split()[0].upper()} {m.group(2)}")
 
     event.listen(db.engine, "before_cursor_execute", seen)
+    return statements
+
+
+def test_a_group_is_stored_with_one_statement_per_table_and_one_savepoint(
+    api_noproc: Api, db_url: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Not a savepoint and a set of statements per stream: one of each for the whole group."""
+    acts = ["s0", "s1", "s2"]
+    _logged_streams(api_noproc, acts)
+    db = Database(db_url)
+    pks = _pks(db)
+    statements = _writes_seen(db)
     processor = Processor(db, make_settings(db_url, processor_txn_budget_s=60.0,
                                          processor_compute_budget_s=60.0))
     assert processor.apply_streams([pks[a] for a in acts]) == 6
@@ -292,22 +299,13 @@ def test_a_group_computed_outside_the_lock_is_bounded_by_the_compute_budget(
     is bounded by ``processor_compute_budget_s``, not by the write transaction's
     ``processor_txn_budget_s``: with the latter spent at once, the three streams still share
     one group while the compute budget lasts, and take one group each when it does not."""
-    from sqlalchemy import event
-
     if not db_url.startswith("sqlite"):
         pytest.skip("PostgreSQL applies in one transaction under the streams' row locks")
-
     acts = ["s0", "s1", "s2"]
     _logged_streams(api_noproc, acts)
     db = Database(db_url)
     pks = _pks(db)
-    stores: list[str] = []
-
-    def seen(conn, cursor, statement, params, context, executemany):  # type: ignore[no-untyped-def]
-        if re.match(r"\s*UPDATE\s+streams\b", statement, re.IGNORECASE):
-            stores.append(statement)
-
-    event.listen(db.engine, "before_cursor_execute", seen)
+    statements = _writes_seen(db)
     settings = make_settings(db_url, processor_txn_budget_s=1e-9, processor_compute_budget_s=compute_budget_s)
     processor = Processor(db, settings, in_lock_applies=False)
     assert processor.apply_streams([pks[a] for a in acts]) == 6
@@ -315,7 +313,7 @@ def test_a_group_computed_outside_the_lock_is_bounded_by_the_compute_budget(
         marks = sorted(session.scalars(select(Stream.last_applied_seq)))
     db.dispose()
     assert marks == [2, 2, 2]
-    assert len(stores) == groups  # one UPDATE of the streams per group
+    assert statements.count("UPDATE streams") == groups  # one per group
 
 
 def test_a_group_whose_store_fails_is_stored_stream_by_stream(
