@@ -32,6 +32,7 @@ same program.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import pickle
@@ -151,6 +152,10 @@ class ApplyProcess:
         with self._lock:
             sock, self._sock = self._sock, None
         if sock is not None:
+            # Shut down first: the reader thread's file object keeps the descriptor open past
+            # close(), and the child would not see the end of its socket until it was killed.
+            with contextlib.suppress(OSError):
+                sock.shutdown(socket.SHUT_RDWR)
             sock.close()
         proc = self._proc
         if proc is not None:

@@ -99,6 +99,25 @@ def test_the_processor_runs_in_a_child_and_serve_reports_its_work(live_server: L
     assert apply_children(server) == [child]
 
 
+def test_sigterm_to_serve_alone_ends_its_apply_process(live_server: LiveServer) -> None:
+    """A SIGTERM to ``serve`` only (not its process group, as a service manager or ``kill``
+    sends it): ``serve`` closes its end of the socket and the child, seeing it end, finishes
+    and exits by itself, before the shutdown timeout (``serve`` would kill it then, and say
+    so in its log). The reader thread's file object must not keep the socket open."""
+    server = live_server
+    assert server.proc is not None
+    (child,) = apply_children(server)
+    with FleetHealthClient(server.url, server.api_key) as client:
+        client.create_aircraft("E2E")
+        client.create_actuator("E2E", "a", estimators=FAKF)
+    _feed(server, "a", range(1), make_series(BATCH, seed=43), wait_s=60.0)
+    server.proc.send_signal(signal.SIGTERM)
+    server.proc.wait(30)
+    log = server.log_path.read_text(errors="replace")
+    assert "did not exit within" not in log, log[-2000:]
+    assert not Path(f"/proc/{child}").exists() or b"zombie" in Path(f"/proc/{child}/status").read_bytes().lower()
+
+
 def test_sigkill_the_apply_process_mid_stream(live_server: LiveServer) -> None:
     server = live_server
     series = reference_and_target(server, seed=42)
