@@ -476,13 +476,10 @@ class Processor:
         prepared: list[service.PreparedApply] = []
         left: list[int] = []
         budget = self.settings.processor_max_samples_per_txn
-        # SQLite: this transaction holds the write lock that the log's acknowledgements wait
-        # for; PostgreSQL: the streams' row locks, which they do not (other appliers skip them).
-        seconds = self.settings.processor_txn_budget_s if self.db.is_sqlite else self.settings.processor_compute_budget_s
         limits = self._limits()
         loaded = first or service.GroupLoad({}, {}, {})
         for i, pk in enumerate(pks):
-            if self._over(i, t0, budget, seconds):
+            if self._over(i, t0, budget, self.settings.processor_txn_budget_s):
                 left = pks[i:]
                 break
             if i or first is None:
