@@ -692,7 +692,8 @@ def recent_batches(server: Server) -> dict[str, float]:
 
 
 def metric_by_label(server: Server, name: str, label: str) -> dict[str, float]:
-    """A counter of the server's ``/metrics`` by one label (empty when it has none)."""
+    """A counter of the server's ``/metrics`` by one label (empty when it has none; a sample
+    without labels, such as a histogram's ``_count``, under ``""``)."""
     import httpx
 
     text = httpx.get(server.url + "/metrics", headers={"Authorization": f"Bearer {server.api_key}"},
@@ -702,6 +703,8 @@ def metric_by_label(server: Server, name: str, label: str) -> dict[str, float]:
         if line.startswith(name + "{"):
             value = line.split(f'{label}="', 1)[1].split('"', 1)[0]
             out[value] = float(line.rsplit(" ", 1)[1])
+        elif line.startswith(name + " "):
+            out[""] = float(line.rsplit(" ", 1)[1])
     return out
 
 

@@ -36,6 +36,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
@@ -147,9 +148,11 @@ def _client_proc(url: str, key: str, tail: str, acts: list[str], frames: list[by
 
 
 def many_connections(url: str, key: str, tail: str, n_streams: int, frames: Frames,
-                     n_procs: int, window: int, server_pid: int) -> tuple[float, float, float]:
+                     n_procs: int, window: int, server_pid: int,
+                     at_go: Callable[[], None] | None = None) -> tuple[float, float, float]:
     """Wall seconds of the sending phase (first frame sent to last result received, over every
-    client process), client and server CPU seconds of that phase (not of the handshakes)."""
+    client process), client and server CPU seconds of that phase (not of the handshakes).
+    ``at_go``: called once every connection is open, just before the sending phase."""
     encoded = [encode_frame(i + 1, chans, t_s=t, binary=True) for i, (t, chans) in enumerate(frames)]
     assert all(isinstance(f, bytes) for f in encoded)
     acts = [f"a{k:04d}" for k in range(n_streams)]
@@ -164,6 +167,8 @@ def many_connections(url: str, key: str, tail: str, n_streams: int, frames: Fram
         got = pipe.recv()
         if isinstance(got, BaseException):
             raise got
+    if at_go is not None:
+        at_go()
     cpu0 = tree_cpu_s(server_pid)
     for _, pipe in procs:
         pipe.send("go")

@@ -3,10 +3,10 @@
 One ``fleethealth serve`` (SQLite in a temporary folder, FAKF attached) per run; ``--streams``
 connections (default 1,000) each send ``--frames`` 10-sample Arrow frames with the lean clients
 of :mod:`bench_ws` (at most 4 awaiting their results). Printed per run: frames per second,
-server and client CPU per frame, the CPU per frame of each server thread (``/proc``; thread
-names from ``py-spy dump`` when py-spy is installed, else thread ids), and how the work was
-grouped: apply transactions and log commits during the run (``/metrics``), so the appends per
-log commit and the streams per apply group can be read off.
+server and client CPU per frame (``/proc``), the CPU per frame of the server's threads by name
+(``fleethealth_thread_cpu_seconds_total``, the apply process's as ``apply:<thread>``), and how
+the work was grouped: apply transactions, batches applied and log commits during the run
+(``/metrics``), so the appends per log commit and the batches per apply group can be read off.
 
 ``--env NAME=VALUE`` (repeatable) runs the server with that setting; ``--alternate
 NAME=V1,V2`` runs each value in turn, ``--runs`` times, one server at a time, so that two
@@ -25,13 +25,9 @@ Figures are printed; nothing is asserted.
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import re
-import shutil
-import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -39,54 +35,25 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 import bench_ws  # noqa: E402
-from bench_ingest import _tree, make_stream, running_server  # noqa: E402
+from bench_ingest import Server, make_stream, metric_by_label, running_server  # noqa: E402
 from fleethealth_client import frames_of  # noqa: E402
 
-_METRICS = ("fleethealth_apply_groups_total", "fleethealth_batches_applied_total",
-            "fleethealth_log_group_appends_count", "fleethealth_log_group_appends_sum")
+#: How often the apply process sends its metrics to ``serve`` (app/processing/apply_process.py),
+#: plus a margin: waited before each reading so that the child's CPU is in it.
+CHILD_REPORT_S = 1.5
+
+_THREADS = "fleethealth_thread_cpu_seconds_total"
+#: Counters read before and after the run: apply transactions (by path), batches applied, and
+#: the log writer's commits (its group-size histogram's count and sum).
+_COUNTERS = ("fleethealth_apply_groups_total", "fleethealth_batches_applied_total",
+             "fleethealth_log_group_appends_count", "fleethealth_log_group_appends_sum")
 
 
-def _thread_cpu(pids: list[int]) -> dict[tuple[int, int], float]:
-    """CPU seconds of every thread of the processes, by (pid, tid)."""
-    out = {}
-    tick = os.sysconf("SC_CLK_TCK")
-    for pid in pids:
-        for tid in os.listdir(f"/proc/{pid}/task"):
-            try:
-                fields = Path(f"/proc/{pid}/task/{tid}/stat").read_text().rsplit(")", 1)[1].split()
-            except OSError:
-                continue
-            out[(pid, int(tid))] = (int(fields[11]) + int(fields[12])) / tick
-    return out
-
-
-def _thread_names(pids: list[int]) -> dict[int, str]:
-    """Python thread names by native thread id, from ``py-spy dump`` (empty without py-spy)."""
-    spy = shutil.which("py-spy") or str(Path(sys.executable).parent / "py-spy")
-    if not Path(spy).exists():
-        return {}
-    names: dict[int, str] = {}
-    for pid in pids:
-        try:
-            dump = subprocess.run([spy, "dump", "--nonblocking", "--json", "-p", str(pid)], capture_output=True,
-                                  text=True, timeout=30).stdout
-            for th in json.loads(dump):
-                names[int(th["os_thread_id"])] = f"{'apply process' if pid != pids[0] else 'serve'}: {th['thread_name']}"
-        except (OSError, ValueError, KeyError, subprocess.TimeoutExpired):
-            continue
-    return names
-
-
-def _metrics(url: str, key: str) -> dict[str, float]:
-    import httpx
-
-    text = httpx.get(url + "/metrics", headers={"Authorization": f"Bearer {key}"}, timeout=30).text
-    out: dict[str, float] = {}
-    for line in text.splitlines():
-        m = re.match(r"^(\w+)(\{[^}]*\})? ([0-9.eE+-]+)$", line)
-        if m and m.group(1) in _METRICS:
-            out[m.group(1)] = out.get(m.group(1), 0.0) + float(m.group(3))
-    return out
+def _snapshot(server: Server) -> dict[str, dict[str, float]]:
+    """The counters above and the CPU seconds of the server's threads by name (``serve``'s and,
+    as ``apply:<thread>``, its apply process's), from ``/metrics``."""
+    return {name: metric_by_label(server, name, "path") for name in _COUNTERS} | {
+        _THREADS: metric_by_label(server, _THREADS, "thread")}
 
 
 def one_run(args: argparse.Namespace, env: dict[str, str], tree: Path | None) -> dict[str, float]:
@@ -96,22 +63,33 @@ def one_run(args: argparse.Namespace, env: dict[str, str], tree: Path | None) ->
         bench_ws._setup(server.url, server.api_key, "T", args.streams)
         t, chans = make_stream(10 * args.frames, seed=10, t0=0.0)
         frames = frames_of(t, chans, 10)
-        pids = _tree(server.process.pid)
-        m0, c0 = _metrics(server.url, server.api_key), _thread_cpu(pids)
+        before: dict[str, dict[str, float]] = {}
+
+        def at_go() -> None:  # every connection open: the handshakes are not counted
+            time.sleep(CHILD_REPORT_S)  # the apply process's metrics reach serve once a second
+            before.update(_snapshot(server))
+
         wall, client_cpu, server_cpu = bench_ws.many_connections(
-            server.url, server.api_key, "T", args.streams, frames, args.client_procs, 4, server.process.pid)
-        c1, m1 = _thread_cpu(pids), _metrics(server.url, server.api_key)
-        names = _thread_names(pids)  # after the run: the parse pool's threads start with the first frames
+            server.url, server.api_key, "T", args.streams, frames, args.client_procs, 4, server.process.pid,
+            at_go=at_go)
+        time.sleep(CHILD_REPORT_S)
+        after = _snapshot(server)
     n = args.streams * len(frames)
-    out = {"frames/s": n / wall, "server CPU ms/frame": 1e3 * server_cpu / n, "client CPU ms/frame": 1e3 * client_cpu / n}
-    d = {k: m1.get(k, 0.0) - m0.get(k, 0.0) for k in _METRICS}
-    out["apply groups"] = d["fleethealth_apply_groups_total"]
-    out["batches per apply group"] = d["fleethealth_batches_applied_total"] / max(1.0, d["fleethealth_apply_groups_total"])
-    out["log commits"] = d["fleethealth_log_group_appends_count"]
-    out["appends per log commit"] = d["fleethealth_log_group_appends_sum"] / max(1.0, d["fleethealth_log_group_appends_count"])
-    spent = sorted(((c1[k] - c0.get(k, 0.0), k) for k in c1), reverse=True)
-    for cpu, (_, tid) in spent[: args.threads]:
-        out[f"  {names.get(tid, f'thread {tid}')} ms/frame"] = 1e3 * cpu / n
+
+    def delta(name: str) -> dict[str, float]:
+        return {k: v - before[name].get(k, 0.0) for k, v in after[name].items()}
+
+    groups = sum(delta("fleethealth_apply_groups_total").values())
+    commits = sum(delta("fleethealth_log_group_appends_count").values())
+    out = {"frames/s": n / wall, "server CPU ms/frame": 1e3 * server_cpu / n, "client CPU ms/frame": 1e3 * client_cpu / n,
+           "apply groups": groups,
+           "batches per apply group": sum(delta("fleethealth_batches_applied_total").values()) / max(1.0, groups),
+           "log commits": commits,
+           "appends per log commit": sum(delta("fleethealth_log_group_appends_sum").values()) / max(1.0, commits)}
+    # A pool thread that ended during the run takes its CPU out of the sum (app/system/threads.py):
+    # the request pool's figure is a lower bound.
+    for thread, cpu in sorted(delta(_THREADS).items(), key=lambda kv: -kv[1])[: args.threads]:
+        out[f"  {thread} ms/frame"] = 1e3 * cpu / n
     return out
 
 
