@@ -66,7 +66,7 @@ from estimators.kernels.stmmae_kernels import IntArray
 from estimators.models.small_uav import reference_model
 
 NAME = "stmmae"
-STATE_VERSION = 4
+STATE_VERSION = 5
 
 Variant = Literal["improved", "strong_tracking", "emmae"]
 Likelihood = Literal["euclidean", "gaussian"]
@@ -341,6 +341,23 @@ class StmmaeConfig(EstimatorConfigModel):
         "well determined, as for two halves of a split surface), a fault's kind history "
         "records its estimate plus the other's estimate less its stuck position",
     )
+    group_detection: bool = Field(
+        True,
+        description="the two halves of a split surface (each the other's most collinear "
+        "surface) are also detected together, as 'one of the two', while no fault is active: "
+        "a fault_detected event names the group and both candidates as soon as the group's "
+        "conditions hold, before the data tell the halves apart; the half's own detection "
+        "follows and ends the group's episode (docs/methods-stmmae.md, 'Group detection')",
+    )
+    group_isolation_odds: Number = Field(
+        0.99,
+        gt=0.0,
+        lt=1.0,
+        description="while a group of two halves is detected, a half is named only when its "
+        "isolation odds against the other surfaces exceed this level (detect_probability "
+        "otherwise): the group has raised the alert, so the choice of the half can wait for "
+        "stronger evidence",
+    )
     deflection_limit_deg: Number = Field(
         30.0, gt=0.0, le=180.0, description="clip of the deflection estimate, deg"
     )
@@ -512,6 +529,8 @@ def _kernel_vector(config: StmmaeConfig) -> FloatArray:
     cfg[kern.CFG_REBASE] = 1.0 if config.rebase_on_detection else 0.0
     cfg[kern.CFG_KIND_CUT] = 1.0 if config.fault_kind_cut else 0.0
     cfg[kern.CFG_KIND_TWIN] = 1.0 if config.fault_kind_twin_correction else 0.0
+    cfg[kern.CFG_GROUP] = 1.0 if config.group_detection else 0.0
+    cfg[kern.CFG_GROUP_ISO] = config.group_isolation_odds
     cfg[kern.CFG_CLEAR_DEFL] = math.radians(config.clear_deflection_deg)
     cfg[kern.CFG_CLEAR_SMOOTH_S] = config.clear_smoothing_s
     cfg[kern.CFG_MIN_LLR] = config.min_log_likelihood_ratio
@@ -678,10 +697,10 @@ class StmmaeState:
         version: schema version (``STATE_VERSION``).
         t_last_s: time of the last sample seen (-inf before any).
         vector: FloatArray  # (layout.length,) packed parts, never modified in place.
-        layout_version: the layout ``vector`` has: ``STATE_VERSION``, or 2 or 3 for a state
-            of that version just loaded, whose new parts need the configuration and are added
-            by the first :func:`state_parts` or :func:`step` (see :func:`_upgrade_layout_v2`,
-            :func:`_upgrade_layout_v3`).
+        layout_version: the layout ``vector`` has: ``STATE_VERSION``, or 2, 3 or 4 for a
+            state of that version just loaded, whose new parts need the configuration and are
+            added by the first :func:`state_parts` or :func:`step` (see
+            :func:`_upgrade_layout_v2`, :func:`_upgrade_layout_v3`, :func:`_upgrade_layout_v4`).
     """
 
     version: int
@@ -712,6 +731,8 @@ class StateParts:
         window: FloatArray  # (kern.W_LEN,) accumulators of the open health window (``W_*``).
         applied: FloatArray  # (m,) inputs applied over the step into the next sample (the
             servo model's output; version 4).
+        groups: FloatArray  # (s, kern.G_LEN) group decision fields (``G_*``) on the row of
+            the first half of each pair of twin halves (version 5).
     """
 
     samples_seen: float
@@ -727,6 +748,7 @@ class StateParts:
     kind_blocks: FloatArray
     window: FloatArray
     applied: FloatArray
+    groups: FloatArray
 
 
 def layout(config: StmmaeConfig) -> kern.Layout:
@@ -766,6 +788,7 @@ def state_parts(config: StmmaeConfig, state: StmmaeState) -> StateParts:
         kind_blocks=vec[lay.kind_blocks : lay.window].reshape(lay.s, kern.KIND_BLOCKS),
         window=vec[lay.window : lay.window + kern.W_LEN],
         applied=vec[lay.applied : lay.applied + m],
+        groups=vec[lay.groups : lay.length].reshape(lay.s, kern.G_LEN),
     )
 
 
@@ -791,13 +814,16 @@ def initial_state(config: StmmaeConfig) -> StmmaeState:
         vec[d + kern.D_BLK_IDX] = -1.0
         vec[d + kern.D_KIND_CORR] = np.nan
         vec[d + kern.D_DEFL] = np.nan
+        g = lay.groups + h * kern.G_LEN
+        for idx in kern.G_TIMES:
+            vec[g + idx] = np.nan
     vec.setflags(write=False)
     return StmmaeState(version=STATE_VERSION, t_last_s=-math.inf, vector=vec)
 
 
 def dump_state(state: StmmaeState) -> bytes:
     """Versioned byte form of the state (exact round trip; see :func:`dump_vector_state`). A
-    loaded version-2 or -3 state not stepped yet is written back as the state it is."""
+    loaded version-2, -3 or -4 state not stepped yet is written back as the state it is."""
     return dump_vector_state(NAME, state.layout_version, state.t_last_s, state.vector)
 
 
@@ -885,6 +911,20 @@ def _upgrade_layout_v3(config: StmmaeConfig, vector: FloatArray) -> FloatArray:
     return fresh
 
 
+def _upgrade_layout_v4(config: StmmaeConfig, vector: FloatArray) -> FloatArray:
+    """Version 4 -> 5: version 5 appends the group decision fields, which start as a fresh
+    state has them (no group detected, no run open): a group is judged from the next sample."""
+    lay = layout(config)
+    if vector.shape != (lay.groups,):
+        raise EstimatorError(
+            f"version-4 state of length {vector.shape[0]} does not fit this configuration "
+            f"(expected {lay.groups})"
+        )
+    fresh = np.concatenate([vector, initial_state(config).vector[lay.groups :]])
+    fresh.setflags(write=False)
+    return fresh
+
+
 def _current_vector(config: StmmaeConfig, state: StmmaeState) -> FloatArray:
     """The state's vector in the current layout (older layouts upgraded step by step)."""
     vector = state.vector
@@ -892,11 +932,13 @@ def _current_vector(config: StmmaeConfig, state: StmmaeState) -> FloatArray:
         vector = _upgrade_layout_v2(config, vector)
     if state.layout_version <= 3:
         vector = _upgrade_layout_v3(config, vector)
+    if state.layout_version <= 4:
+        vector = _upgrade_layout_v4(config, vector)
     return vector
 
 
 _UPGRADES: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {1: _upgrade_v1}
-_LAYOUT_VERSIONS = (2, 3, STATE_VERSION)  # versions whose vector this code reads directly
+_LAYOUT_VERSIONS = (2, 3, 4, STATE_VERSION)  # versions whose vector this code reads directly
 
 
 def load_state(data: bytes) -> StmmaeState:
@@ -995,6 +1037,7 @@ def _detail(
     kind = FAULT_KINDS[float(code)]
     return {
         "component": config.hypotheses[hyp],
+        "candidates": [config.hypotheses[hyp]],
         "fault_kind": kind,
         "stuck_position_deg": _deg(mean_rad) if kind == "stuck" else None,
         "deflection_swing_deg": _deg(swing_rad),
@@ -1026,7 +1069,49 @@ EVENT_KINDS: dict[int, str] = {
 }
 
 
+def group_name(a: str, b: str) -> str:
+    """Name of the group of twin halves ``a`` and ``b``: their common stem before the last
+    ``_`` ("elevator" for ``elevator_left`` and ``elevator_right``), else ``"a|b"``."""
+    stem_a, _, _ = a.rpartition("_")
+    stem_b, _, _ = b.rpartition("_")
+    return stem_a if stem_a and stem_a == stem_b else f"{a}|{b}"
+
+
+def _group_detail(
+    config: StmmaeConfig, h: int, a: int, onset_s: float, detected_s: float
+) -> dict[str, Any]:
+    """Detail of a group fault (twin halves ``h`` and ``a``, surface indices): which half is
+    not known yet, so the kind and position are not either."""
+    surfaces = config.model.surfaces
+    return {
+        "component": group_name(surfaces[h], surfaces[a]),
+        "candidates": [surfaces[h], surfaces[a]],
+        "fault_kind": "pending",
+        "stuck_position_deg": None,
+        "deflection_swing_deg": None,
+        "deflection_autocorrelation_min": None,
+        "onset_s": _finite(onset_s),
+        "detected_s": _finite(detected_s),
+    }
+
+
 def _event(row: FloatArray, config: StmmaeConfig) -> EstimatorEvent:
+    kind = EVENT_KINDS[int(row[kern.EV_KIND])]
+    if row[kern.EV_TWIN] > 0.0:
+        detail = _group_detail(
+            config,
+            int(row[kern.EV_HYP]) - 1,
+            int(row[kern.EV_TWIN]) - 1,
+            row[kern.EV_ONSET_T],
+            row[kern.EV_DETECTED_T],
+        )
+        if kind == "fault_detected":
+            detail["log_likelihood_ratio"] = _finite(round(float(row[kern.EV_LLR]), 3))
+        else:
+            half = int(row[kern.EV_ISOLATED_AS]) - 1
+            detail["cleared_s"] = _finite(row[kern.EV_T])
+            detail["isolated_as"] = config.model.surfaces[half] if half >= 0 else None
+        return EstimatorEvent(t_s=float(row[kern.EV_T]), kind=kind, detail=detail)
     detail = _detail(
         config,
         int(row[kern.EV_HYP]),
@@ -1037,7 +1122,6 @@ def _event(row: FloatArray, config: StmmaeConfig) -> EstimatorEvent:
         row[kern.EV_ONSET_T],
         row[kern.EV_DETECTED_T],
     )
-    kind = EVENT_KINDS[int(row[kern.EV_KIND])]
     if kind == "fault_detected":
         detail["log_likelihood_ratio"] = _finite(round(float(row[kern.EV_LLR]), 3))
     if kind == "fault_cleared":
@@ -1053,15 +1137,28 @@ def _fault_reason(f: dict[str, Any]) -> str:
         return f"fault: {f['component']} stuck at {where}"
     if f["fault_kind"] == "oscillating":
         return f"fault: {f['component']} oscillating, swing {f['deflection_swing_deg']:.1f} deg"
+    if len(f["candidates"]) > 1:
+        return (
+            f"fault: {' or '.join(f['candidates'])} not following its command (which one: "
+            "not isolated yet)"
+        )
     return f"fault: {f['component']} not following its command (stuck or oscillating: pending)"
 
 
 def active_faults(config: StmmaeConfig, state: StmmaeState) -> list[dict[str, Any]]:
     """Details of the faults active at the last sample."""
-    decisions = state_parts(config, state).decisions
-    return [
-        _fault_detail(config, h + 1, d) for h, d in enumerate(decisions) if d[kern.D_ACTIVE] == 1.0
+    parts = state_parts(config, state)
+    faults = [
+        _fault_detail(config, h + 1, d)
+        for h, d in enumerate(parts.decisions)
+        if d[kern.D_ACTIVE] == 1.0
     ]
+    arr = config.arrays
+    for h, g in enumerate(parts.groups):
+        if g[kern.G_ACTIVE] == 1.0:
+            a = kern.twin_index(arr.collinear, h)
+            faults.append(_group_detail(config, h, a, g[kern.G_ONSET_T], g[kern.G_DETECTED_T]))
+    return faults
 
 
 def status_report(config: StmmaeConfig, state: StmmaeState) -> StatusReport:

@@ -8,8 +8,9 @@ service carries the decisions out in the same transaction. Causes and what they 
   changes the open alarm's severity; ``ok`` or ``learning`` clears it.
 * ``fault`` (subject: the component): ``fault_detected`` raises a ``major`` alarm per
   component, re-triggers it while open; ``fault_cleared`` clears it (a clearance naming no open
-  component clears all of that estimator's, and a revised detection, ``"update": true``,
-  replaces that estimator's other components, as the fault list does).
+  component clears all of that estimator's unless it hands a group's episode to one of its
+  halves, ``"isolated_as"``, and a revised detection, ``"update": true``, replaces that
+  estimator's other components, as the fault list does).
 * ``rul``: ``rul_threshold_crossed`` to ``watch`` / ``alert`` / ``failed`` raises or changes
   (``warning`` / ``major`` / ``critical``); back to ``ok`` or ``learning`` clears.
 * ``dn``: ``dn_threshold_crossed`` (normalized deterioration) to ``watch`` / ``alert`` raises
@@ -121,7 +122,11 @@ def decide(open_alarms: Mapping[Key, OpenAlarm], events: Sequence[RuleEvent]) ->
                     estimator,
                 )
             elif ("fault", component) in state:
-                clear(i, ("fault", component), f"fault cleared: {component}")
+                half = detail.get("isolated_as")
+                why = f"isolated as {half}" if half else f"fault cleared: {component}"
+                clear(i, ("fault", component), why)
+            elif detail.get("isolated_as"):
+                pass  # a group's episode handed to its half, whose own alarm stays open
             else:
                 for k in mine:
                     clear(i, k, f"fault cleared by {estimator}")

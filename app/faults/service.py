@@ -17,7 +17,8 @@ def open_faults(rows: list[EstimatorEventRow]) -> list[EstimatorEventRow]:
 
     A detection marked ``"update": true`` revises the estimator's open detections (e.g. more
     residuals joined) and replaces them; a clearance naming no open component clears all of
-    that estimator's.
+    that estimator's, unless it hands a group's episode to one of its halves
+    (``"isolated_as"``).
     """
     open_: dict[tuple[str, str], EstimatorEventRow] = {}
     for r in rows:
@@ -29,6 +30,8 @@ def open_faults(rows: list[EstimatorEventRow]) -> list[EstimatorEventRow]:
             open_[key] = r
         elif key in open_:
             del open_[key]
+        elif r.detail.get("isolated_as"):
+            pass  # a group's episode handed to its half, whose own detection stays open
         else:
             for k in [k for k in open_ if k[0] == r.estimator]:
                 del open_[k]

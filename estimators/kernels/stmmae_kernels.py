@@ -16,7 +16,8 @@ one-sided strong-tracking form makes it non-symmetric), ``V`` (p x p innovation 
 estimate) and its "started" flag; the hypothesis probabilities; the last valid inputs; per
 surface the decision fields (``D_*``) and the 0.05 s block history of its deflection estimate
 for the fault-kind test; the health-window accumulators (``W_*``); the inputs applied over the
-step into the next sample (the servo model's output, :func:`_bank_kernel`).
+step into the next sample (the servo model's output, :func:`_bank_kernel`); per surface the group
+decision fields (``G_*``, used for the first half of each pair of twin halves).
 """
 
 from __future__ import annotations
@@ -69,7 +70,9 @@ CFG_KIND_CUT = 24  # 1: a detection cuts the open kind spans of the faults activ
 CFG_SERVO_A = 23  # servo model: a surface's applied deflection moves by this share of the gap
 # to its command per model step (1 - exp(-dt / tau); 1: no lag)
 CFG_KIND_TWIN = 25  # 1: a fault's kind history is conditioned on the active stuck faults' positions
-CFG_LEN = 26
+CFG_GROUP = 26  # 1: twin halves are detected together ("one of the two") before one is isolated
+CFG_GROUP_ISO = 27  # isolation odds a half needs while its group is detected
+CFG_LEN = 28
 COLLINEAR_STEPS = 20  # model steps over which a deflection's effect on the measurements is taken
 
 KIND_BLOCK_S = 0.05  # the kind test reads the deflection estimate as means over 0.05 s blocks
@@ -121,6 +124,16 @@ D_PROB = 19  # latest marginal fault probability of the surface
 D_LEN = 20
 D_TIMES = (D_ABOVE_T, D_ONSET_T, D_BELOW_T, D_DETECTED_T, D_KIND_T0)  # NaN when unset
 
+# group decision fields, per surface (used on the row of the first half of a twin pair)
+G_ACTIVE = 0  # 1: the group is detected and neither half isolated yet
+G_ABOVE_T = 1  # start of the current run of the group's detection conditions (NaN: none)
+G_ONSET_T = 2  # start of the current run of the group's probability above the onset level
+G_DETECTED_T = 3
+G_BELOW_T = 4  # start of the current run of the group's clearance conditions
+G_LLR = 5  # evidence summed over the current detection run (nats)
+G_LEN = 6
+G_TIMES = (G_ABOVE_T, G_ONSET_T, G_DETECTED_T, G_BELOW_T)  # NaN when unset
+
 # health-window accumulators
 W_COUNT = 0
 W_T0 = 1
@@ -157,7 +170,9 @@ EV_MEAN = 7  # mean of the smoothed deflection over the episode (rad)
 EV_FAULT_KIND = 8  # KIND_* at the time of the event
 EV_CORR = 9  # the kind test's autocorrelation statistic (NaN while pending)
 EV_LLR = 10  # log-likelihood ratio summed over the detection run
-EV_LEN = 11
+EV_TWIN = 11  # group event: index + 1 of the group's other half (EV_HYP the first); 0 otherwise
+EV_ISOLATED_AS = 12  # group clearance on isolation: index + 1 of the half detected; 0 otherwise
+EV_LEN = 13
 EV_DETECTED = 1
 EV_CLEARED = 2
 EV_CLASSIFIED = 3
@@ -240,6 +255,7 @@ class Layout(NamedTuple):
     kind_blocks: int  # (s, KIND_BLOCKS) block means of the deflection estimate (rad)
     window: int
     applied: int  # (m,) the inputs applied over the step into the next sample (servo model)
+    groups: int  # (s, G_LEN) group decision fields (twin halves detected together)
     length: int
 
 
@@ -268,6 +284,7 @@ def state_layout(nh: int, na: int, p: int, m: int, s: int) -> Layout:
         window,
         applied,
         applied + m,
+        applied + m + s * G_LEN,
     )
 
 
@@ -659,6 +676,8 @@ def _write_event(
     row[EV_FAULT_KIND] = dec[h, D_KIND]
     row[EV_CORR] = dec[h, D_KIND_CORR]
     row[EV_LLR] = dec[h, D_LLR]
+    row[EV_TWIN] = 0.0
+    row[EV_ISOLATED_AS] = 0.0
     return events
 
 
@@ -953,6 +972,148 @@ def twins(collinear: FloatArray, h: int, a: int) -> bool:
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def twin_index(collinear: FloatArray, h: int) -> int:
+    """The twin of surface ``h`` (:func:`twins`), -1 for none."""
+    for a in range(collinear.shape[0]):
+        if a != h and twins(collinear, h, a):
+            return a
+    return -1
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def twin_pair_mass(bank: BankArrays, dec: FloatArray, probs: FloatArray, h: int, a: int) -> float:
+    """Probability of the hypotheses whose new faults (surfaces not in fault) are exactly ``h``
+    and ``a``."""
+    total = 0.0
+    for f in range(probs.shape[0]):
+        has_h = False
+        has_a = False
+        other_new = False
+        for e in range(bank.slot_surface.shape[1]):
+            g = bank.slot_surface[f, e]
+            if g == h:
+                has_h = True
+            elif g == a:
+                has_a = True
+            elif g >= 0 and dec[g, D_ACTIVE] != 1.0:
+                other_new = True
+        if has_h and has_a and not other_new:
+            total += probs[f]
+    return total
+
+
+EV_GROUP_ISOLATED = 4  # _decide_group: a half of the detected group has been detected
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _decide_group(
+    cfg: FloatArray,
+    gdec: FloatArray,
+    dec: FloatArray,
+    h: int,
+    a: int,
+    t: float,
+    q: float,
+    iso: float,
+    llr: float,
+    deflected: bool,
+    back: bool,
+    any_active: bool,
+) -> int:
+    """Detection and clearance of the group of twin halves ``h`` and ``a`` (fields on
+    ``gdec[h]``) at one sample; returns 0, ``EV_DETECTED``, ``EV_CLEARED`` or
+    ``EV_GROUP_ISOLATED``.
+
+    The group is detected, while no surface is in fault (``any_active`` false), when for
+    ``CFG_HOLD_S`` together: ``q``, the probability that the new fault is in the group (either
+    half or both), and ``iso``, its odds against the strongest other surface or group, are
+    above ``CFG_DETECT_P``; one half's smoothed deflection estimate passes its deflection gate
+    (``deflected``); and at the end the evidence ``llr`` (the better half's filter against the
+    base family, per sample) summed over the run is at least ``CFG_MIN_LLR``: the conditions of
+    a surface's detection with the group in place of the surface. It ends when either half is
+    detected (``EV_GROUP_ISOLATED``), or is cleared when ``q`` is below ``CFG_CLEAR_P`` and both
+    halves follow their commands (``back``) for ``CFG_CLEAR_HOLD_S``."""
+    if gdec[h, G_ACTIVE] == 1.0:
+        if dec[h, D_ACTIVE] == 1.0 or dec[a, D_ACTIVE] == 1.0:
+            return EV_GROUP_ISOLATED
+        if back and q < cfg[CFG_CLEAR_P]:
+            if math.isnan(gdec[h, G_BELOW_T]):
+                gdec[h, G_BELOW_T] = t
+            if t - gdec[h, G_BELOW_T] >= cfg[CFG_CLEAR_HOLD_S] - HOLD_TOL_S:
+                return EV_CLEARED
+        else:
+            gdec[h, G_BELOW_T] = np.nan
+        return 0
+    if q > cfg[CFG_ONSET_P]:
+        if math.isnan(gdec[h, G_ONSET_T]):
+            gdec[h, G_ONSET_T] = t
+    else:
+        gdec[h, G_ONSET_T] = np.nan
+    if any_active or not (q > cfg[CFG_DETECT_P] and iso > cfg[CFG_DETECT_P] and deflected):
+        gdec[h, G_ABOVE_T] = np.nan
+        return 0
+    if math.isnan(gdec[h, G_ABOVE_T]):
+        gdec[h, G_ABOVE_T] = t
+        gdec[h, G_LLR] = 0.0
+    if math.isfinite(llr):
+        gdec[h, G_LLR] += llr
+    if (
+        t - gdec[h, G_ABOVE_T] >= cfg[CFG_HOLD_S] - HOLD_TOL_S
+        and gdec[h, G_LLR] >= cfg[CFG_MIN_LLR]
+    ):
+        gdec[h, G_ACTIVE] = 1.0
+        gdec[h, G_DETECTED_T] = t
+        gdec[h, G_BELOW_T] = np.nan
+        return EV_DETECTED
+    return 0
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _write_group_event(
+    events: FloatArray,
+    n_ev: int,
+    t: float,
+    kind: float,
+    gdec: FloatArray,
+    h: int,
+    a: int,
+    isolated_as: int,
+) -> FloatArray:
+    """Append one event row of the group of ``h`` and ``a`` (``isolated_as``: the half
+    detected, -1 for none); returns the array."""
+    if n_ev >= events.shape[0]:
+        bigger = np.empty((2 * events.shape[0], EV_LEN))
+        bigger[:n_ev] = events[:n_ev]
+        events = bigger
+    row = events[n_ev]
+    row[EV_T] = t
+    row[EV_KIND] = kind
+    row[EV_HYP] = h + 1
+    row[EV_ONSET_T] = gdec[h, G_ONSET_T]
+    row[EV_DETECTED_T] = gdec[h, G_DETECTED_T]
+    row[EV_CLEARED_T] = t if kind == EV_CLEARED else np.nan
+    row[EV_SWING] = np.nan
+    row[EV_MEAN] = np.nan
+    row[EV_FAULT_KIND] = KIND_PENDING
+    row[EV_CORR] = np.nan
+    row[EV_LLR] = gdec[h, G_LLR]
+    row[EV_TWIN] = a + 1
+    row[EV_ISOLATED_AS] = isolated_as + 1
+    return events
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def reset_group(gdec: FloatArray, h: int) -> None:
+    """The group of ``h`` back to "not detected" after its clearance (or isolation) event."""
+    gdec[h, G_ACTIVE] = 0.0
+    gdec[h, G_ABOVE_T] = np.nan
+    gdec[h, G_ONSET_T] = np.nan
+    gdec[h, G_DETECTED_T] = np.nan
+    gdec[h, G_BELOW_T] = np.nan
+    gdec[h, G_LLR] = 0.0
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def kind_value(
     cfg: FloatArray,
     dec: FloatArray,
@@ -1190,6 +1351,7 @@ def _bank_kernel(
     n_slots = bank.slot_surface.shape[1]
     lay_kind = lay_dec + ns * D_LEN
     lay_win = lay_kind + ns * KIND_BLOCKS
+    lay_groups = lay_win + W_LEN + m
     hw = cfg[CFG_WINDOW]
     windows = np.empty((int(k_len // hw) + 1, WIN_LEN))
     events = np.empty((8, EV_LEN))
@@ -1204,6 +1366,11 @@ def _bank_kernel(
     xs, ps, vs, vflags = _unpack(st, nh, na, p)
     dec = st[lay_dec : lay_dec + ns * D_LEN].copy().reshape((ns, D_LEN))
     kbuf = st[lay_kind:lay_win].copy().reshape((ns, KIND_BLOCKS))
+    gdec = st[lay_groups : lay_groups + ns * G_LEN].copy().reshape((ns, G_LEN))
+    groups_on = cfg[CFG_GROUP] != 0.0
+    twin_of = np.full(ns, -1, dtype=np.int64)
+    for g in range(ns):
+        twin_of[g] = twin_index(bank.collinear, g)
     rebase = cfg[CFG_REBASE] != 0.0
     du_f = np.empty(m)
     qx = np.zeros((max(ns, 1), na))
@@ -1370,6 +1537,16 @@ def _bank_kernel(
             dec[h, D_PROB] = pm[h]
             cmd = applied[surface_inputs[h]]  # the command as the surface follows it
             llr = rel_in[h] - rel_base[h] if nv > 0 and dec[h, D_ACTIVE] != 1.0 else 0.0
+            iso_h = iso[h]
+            lead = min(h, twin_of[h])
+            # while the group is detected, the half is named on the stronger odds CFG_GROUP_ISO
+            if (
+                groups_on
+                and lead >= 0
+                and gdec[lead, G_ACTIVE] == 1.0
+                and not iso_h > cfg[CFG_GROUP_ISO]
+            ):
+                iso_h = min(iso_h, cfg[CFG_DETECT_P])
             code = _decide(
                 cfg,
                 dec,
@@ -1378,7 +1555,7 @@ def _bank_kernel(
                 tk,
                 dt,
                 pm[h],
-                iso[h],
+                iso_h,
                 defl,
                 vsum[h] / pm[h],
                 cmd,
@@ -1423,6 +1600,59 @@ def _bank_kernel(
                         ):
                             events = _write_event(events, n_ev, tk, EV_CLASSIFIED, dec, h)
                             n_ev += 1
+        if groups_on:
+            for h in range(ns):
+                a = twin_of[h]
+                if a <= h:
+                    continue
+                q = p_new[h] + p_new[a] + twin_pair_mass(bank, dec, probs, h, a)
+                comp = 0.0
+                for o in range(ns):
+                    if o in (h, a) or dec[o, D_ACTIVE] == 1.0:
+                        continue
+                    mass = p_new[o]
+                    b = twin_of[o]
+                    if b >= 0 and b != h and b != a and dec[b, D_ACTIVE] != 1.0:
+                        mass += p_new[b] + twin_pair_mass(bank, dec, probs, o, b)
+                    if mass > comp:
+                        comp = mass
+                iso_g = q / (q + comp) if q + comp > 0.0 else 0.0
+                deflected = False
+                for x in (h, a):
+                    gate = deflection_gate(cfg, vsum[x] / pm[x])
+                    if abs(dec[x, D_SMOOTH] - applied[surface_inputs[x]]) > gate:
+                        deflected = True
+                back = (
+                    abs(dec[h, D_CSMOOTH]) < cfg[CFG_CLEAR_DEFL]
+                    and abs(dec[a, D_CSMOOTH]) < cfg[CFG_CLEAR_DEFL]
+                )
+                llr_g = max(rel_in[h], rel_in[a]) - rel_base[h] if nv > 0 else 0.0
+                code = _decide_group(
+                    cfg,
+                    gdec,
+                    dec,
+                    h,
+                    a,
+                    tk,
+                    q,
+                    iso_g,
+                    llr_g,
+                    deflected,
+                    back,
+                    n_active_after > 0,
+                )
+                if code == EV_GROUP_ISOLATED:
+                    half = h if dec[h, D_ACTIVE] == 1.0 else a
+                    events = _write_group_event(events, n_ev, tk, EV_CLEARED, gdec, h, a, half)
+                    n_ev += 1
+                    reset_group(gdec, h)
+                elif code != 0:
+                    events = _write_group_event(events, n_ev, tk, float(code), gdec, h, a, -1)
+                    n_ev += 1
+                    if code == EV_CLEARED:
+                        reset_group(gdec, h)
+                if gdec[h, G_ACTIVE] == 1.0:
+                    any_active = True
         row += ns
         samples[row, k] = nis0
         # health window
@@ -1455,4 +1685,5 @@ def _bank_kernel(
     _pack(st, xs, ps, vs, vflags)
     st[lay_dec : lay_dec + ns * D_LEN] = dec.ravel()
     st[lay_kind:lay_win] = kbuf.ravel()
+    st[lay_groups : lay_groups + ns * G_LEN] = gdec.ravel()
     return windows[:n_win].copy(), events[:n_ev].copy(), 0

@@ -1,8 +1,11 @@
-"""The alarm rules, as a pure function: raise, change, re-trigger and clear per cause."""
+"""The alarm rules, as a pure function: raise, change, re-trigger and clear per cause; and the
+open-fault list, which follows the same rules for faults."""
 
 from __future__ import annotations
 
 from app.alarms.rules import Decision, OpenAlarm, RuleEvent, decide
+from app.faults.service import open_faults
+from app.models import EstimatorEventRow
 
 
 def status(to: str, reasons: list[str] | None = None) -> RuleEvent:
@@ -65,6 +68,26 @@ def test_faults_per_component_with_revisions_and_blanket_clearance() -> None:
     assert actions(ds) == [("clear", "fault", "s1", 0, "major"), ("raise", "fault", "s2", 0, "major")]
 
 
+def test_a_group_handed_to_its_half_clears_the_group_alone() -> None:
+    """A group of two halves detected, then one half isolated: the half's alarm is raised and
+    the group's cleared as isolated; a hand-over naming no open group clears nothing else."""
+    ds = decide(
+        {},
+        [
+            fault("fault_detected", "aileron", candidates=["aileron_left", "aileron_right"]),
+            fault("fault_detected", "aileron_right"),
+            fault("fault_cleared", "aileron", isolated_as="aileron_right"),
+            fault("fault_cleared", "elevator", isolated_as="elevator_left"),
+        ],
+    )
+    assert actions(ds) == [
+        ("raise", "fault", "aileron", 0, "major"),
+        ("raise", "fault", "aileron_right", 1, "major"),
+        ("clear", "fault", "aileron", 2, "major"),
+    ]
+    assert ds[2].message == "isolated as aileron_right"
+
+
 def test_rul_and_dn_thresholds() -> None:
     rul = lambda to: RuleEvent("rul_threshold_crossed", {"estimator": "dekf", "detail": {"to": to}})  # noqa: E731
     dn = lambda to: RuleEvent("dn_threshold_crossed", {"estimator": "dekf", "detail": {"to": to}})  # noqa: E731
@@ -81,3 +104,28 @@ def test_rul_and_dn_thresholds() -> None:
 
 def test_other_events_raise_nothing() -> None:
     assert decide({}, [RuleEvent("identified", {}), RuleEvent("alarm_raised", {})]) == []
+
+
+def test_the_fault_list_hands_a_group_to_its_half() -> None:
+    """The open faults follow the same rule as the alarms: the group's detection is closed by
+    its hand-over, the half's stays open, and a hand-over whose group is not in the rows read
+    (an older detection outside them) closes nothing else."""
+
+    def row(i: int, kind: str, component: str, **detail: object) -> EstimatorEventRow:
+        return EstimatorEventRow(
+            id=i,
+            estimator="stmmae",
+            t_s=float(i),
+            kind=kind,
+            detail={"component": component, **detail},
+        )
+
+    rows = [
+        row(1, "fault_detected", "aileron", candidates=["aileron_left", "aileron_right"]),
+        row(2, "fault_detected", "aileron_right"),
+        row(3, "fault_cleared", "aileron", isolated_as="aileron_right"),
+    ]
+    assert [r.detail["component"] for r in open_faults(rows)] == ["aileron_right"]
+    assert [r.detail["component"] for r in open_faults(rows[1:])] == ["aileron_right"]
+    # a plain clearance naming nothing open still clears all of the estimator's
+    assert open_faults([*rows[1:], row(4, "fault_cleared", "rudder")]) == []
