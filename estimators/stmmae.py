@@ -349,6 +349,13 @@ class StmmaeConfig(EstimatorConfigModel):
         "conditions hold, before the data tell the halves apart; the half's own detection "
         "follows and ends the group's episode (docs/methods-stmmae.md, 'Group detection')",
     )
+    group_hold_s: Number = Field(
+        0.1,
+        ge=0.0,
+        le=3600.0,
+        description="detection hold time of a group of two halves, s (twice hold_s: the "
+        "group's probability sums three hypotheses, so the same data pass its level sooner)",
+    )
     group_isolation_odds: Number = Field(
         0.99,
         gt=0.0,
@@ -531,6 +538,7 @@ def _kernel_vector(config: StmmaeConfig) -> FloatArray:
     cfg[kern.CFG_KIND_TWIN] = 1.0 if config.fault_kind_twin_correction else 0.0
     cfg[kern.CFG_GROUP] = 1.0 if config.group_detection else 0.0
     cfg[kern.CFG_GROUP_ISO] = config.group_isolation_odds
+    cfg[kern.CFG_GROUP_HOLD_S] = config.group_hold_s
     cfg[kern.CFG_CLEAR_DEFL] = math.radians(config.clear_deflection_deg)
     cfg[kern.CFG_CLEAR_SMOOTH_S] = config.clear_smoothing_s
     cfg[kern.CFG_MIN_LLR] = config.min_log_likelihood_ratio

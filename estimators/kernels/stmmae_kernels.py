@@ -72,7 +72,8 @@ CFG_SERVO_A = 23  # servo model: a surface's applied deflection moves by this sh
 CFG_KIND_TWIN = 25  # 1: a fault's kind history is conditioned on the active stuck faults' positions
 CFG_GROUP = 26  # 1: twin halves are detected together ("one of the two") before one is isolated
 CFG_GROUP_ISO = 27  # isolation odds a half needs while its group is detected
-CFG_LEN = 28
+CFG_GROUP_HOLD_S = 28  # detection hold time of a group
+CFG_LEN = 29
 COLLINEAR_STEPS = 20  # model steps over which a deflection's effect on the measurements is taken
 
 KIND_BLOCK_S = 0.05  # the kind test reads the deflection estimate as means over 0.05 s blocks
@@ -1025,7 +1026,7 @@ def _decide_group(
     ``EV_GROUP_ISOLATED``.
 
     The group is detected, while no surface is in fault (``any_active`` false), when for
-    ``CFG_HOLD_S`` together: ``q``, the probability that the new fault is in the group (either
+    ``CFG_GROUP_HOLD_S`` together: ``q``, the probability that the new fault is in the group (either
     half or both), and ``iso``, its odds against the strongest other surface or group, are
     above ``CFG_DETECT_P``; one half's smoothed deflection estimate passes its deflection gate
     (``deflected``); and at the end the evidence ``llr`` (the better half's filter against the
@@ -1058,7 +1059,7 @@ def _decide_group(
     if math.isfinite(llr):
         gdec[h, G_LLR] += llr
     if (
-        t - gdec[h, G_ABOVE_T] >= cfg[CFG_HOLD_S] - HOLD_TOL_S
+        t - gdec[h, G_ABOVE_T] >= cfg[CFG_GROUP_HOLD_S] - HOLD_TOL_S
         and gdec[h, G_LLR] >= cfg[CFG_MIN_LLR]
     ):
         gdec[h, G_ACTIVE] = 1.0

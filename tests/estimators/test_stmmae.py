@@ -1316,7 +1316,7 @@ def test_group_decision_detects_isolates_and_clears() -> None:
     n = 300
     on = [True] * n
     codes = _decide_group_run(config, [0.95] * n, [0.95] * n, [1.0] * n, on, [False] * n)
-    assert codes == [(config.hold_s, kern.EV_DETECTED)]
+    assert codes == [(config.group_hold_s, kern.EV_DETECTED)]
     # each condition alone holds it back
     for q, iso, llr, defl in (
         ([0.8] * n, [0.95] * n, [1.0] * n, on),  # probability of the group
@@ -1334,14 +1334,15 @@ def test_group_decision_detects_isolates_and_clears() -> None:
     codes = _decide_group_run(
         config, [0.95] * n, [0.95] * n, [1.0] * n, on, [False] * n, half_active_at=50
     )
-    assert codes == [(config.hold_s, kern.EV_DETECTED), (0.5, kern.EV_GROUP_ISOLATED)]
+    assert codes == [(config.group_hold_s, kern.EV_DETECTED), (0.5, kern.EV_GROUP_ISOLATED)]
     # cleared once the group's probability is low and both halves follow their commands for
     # the clearance hold
     q = [0.95] * 20 + [0.01] * (n - 20)
     back = [False] * 20 + [True] * (n - 20)
-    codes = _decide_group_run(config, q, [0.95] * n, [1.0] * n, [True] * 20 + [False] * 280, back)
+    defl = [True] * 20 + [False] * (n - 20)
+    codes = _decide_group_run(config, q, [0.95] * n, [1.0] * n, defl, back)
     assert codes == [
-        (config.hold_s, kern.EV_DETECTED),
+        (config.group_hold_s, kern.EV_DETECTED),
         (0.2 + config.clear_hold_s, kern.EV_CLEARED),
     ]
 
