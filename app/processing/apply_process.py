@@ -12,7 +12,7 @@ body):
   to wake (``pk,pk,...``, as ``LISTEN/NOTIFY``'s ``logged`` channel on PostgreSQL); ``W``/``U``
   a stream that got its first / lost its last WebSocket connection in ``serve``;
 * child -> ``serve``: after each apply commit, ``R`` the results of a watched stream (pickled
-  :class:`~app.processing.messages.BatchResult`\ s, pushed to its connections as this process
+  :class:`~app.processing.messages.BatchResult` objects, pushed to its connections as this process
   pushes its own) and ``A`` the payloads of the applied channel (:mod:`app.processing.wakeups`:
   applied mark and fleet events, ``"r": 1`` when the results went ahead; or a failure); ``K``
   the kernel warm-up's state (for ``/readyz``) until every kind is ready; ``M`` every second,

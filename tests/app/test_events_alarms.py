@@ -207,6 +207,44 @@ def test_a_surface_fault_raises_an_alarm_that_clears_with_the_fault(api: Api) ->
     assert api.get("/v1/alarms?status=open&cause=fault").json()["items"] == []
 
 
+def test_a_split_surface_group_alarm_is_handed_to_the_half(api: Api) -> None:
+    """The right aileron stuck at +12 deg: the bank first detects "one of the two ailerons";
+    through the service the group opens a fault and a major alarm, and when the right half is
+    isolated the group's fault and alarm close ("isolated as aileron_right") while the half's
+    stay open."""
+    import orjson
+
+    from estimators.simulators.uav_closed_loop import SurfaceFault, simulate_flight
+
+    api.post("/v1/aircraft", json={"tail": "UAV2"})
+    r = api.post("/v1/aircraft/UAV2/actuators", json={"actuator_id": "fcu", "kind": "flight_controls"})
+    assert r.status_code == 201, r.text
+    fault = SurfaceFault("aileron_right", 8.0, 20.0, "stuck", position_deg=12.0)
+    t, chans, _ = simulate_flight(15.0, faults=(fault,), seed=11)
+    body = {"batch_id": "all", "t": t.tolist(), "channels": {c: v.tolist() for c, v in chans.items()}}
+    r = api.post("/v1/aircraft/UAV2/actuators/fcu/telemetry?wait=60", content=orjson.dumps(body),
+                 headers={"content-type": "application/json"})
+    assert r.status_code == 202, r.text
+    faults = api.get("/v1/aircraft/UAV2/actuators/fcu/faults").json()
+    kinds = [(e["kind"], e["detail"]["component"]) for e in faults["events"]]
+    assert kinds[:3] == [
+        ("fault_detected", "aileron"),
+        ("fault_detected", "aileron_right"),
+        ("fault_cleared", "aileron"),
+    ]
+    assert faults["events"][0]["detail"]["candidates"] == ["aileron_left", "aileron_right"]
+    assert faults["events"][2]["detail"]["isolated_as"] == "aileron_right"
+    assert [f["detail"]["component"] for f in faults["active_faults"]] == ["aileron_right"]
+    alarms = api.get("/v1/alarms?cause=fault&tail=UAV2").json()["items"]
+    by_subject = {a["subject"]: a for a in alarms}
+    assert set(by_subject) == {"aileron", "aileron_right"}
+    assert by_subject["aileron_right"]["status"] == "active"  # open, not acknowledged
+    group = api.get(f"/v1/alarms/{by_subject['aileron']['id']}").json()
+    assert (group["status"], group["cleared_by"]) == ("cleared", "rule")
+    cleared = next(e for e in _events(api, limit=1000)["items"] if e["id"] == group["cleared_event_id"])
+    assert cleared["type"] == "alarm_cleared" and "isolated as aileron_right" in str(cleared)
+
+
 def test_fleet_subscribers_hear_of_an_acknowledgement_at_once(db_url: str) -> None:
     from fastapi.testclient import TestClient
 
