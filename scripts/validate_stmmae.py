@@ -2,8 +2,9 @@
 section of ``docs/validation.md`` (between ``<!-- stmmae:begin -->`` and ``<!-- stmmae:end -->``;
 the rest of the file is kept).
 
-For each fault of a schedule: detection delay (first ``fault_detected`` after the onset) and
-whether it names the right surface, clearance delay (first ``fault_cleared`` of that surface
+For each fault of a schedule: detection delay (first ``fault_detected`` after the onset naming
+the surface or a group of two halves holding it, ``group_detection``) and whether the first
+detection of a single surface names the right one, clearance delay (first ``fault_cleared`` of that surface
 after the fault's end), the fault kind and stuck position reported at clearance; false alarms
 are detections while no fault is active. Several noise seeds per schedule.
 
@@ -70,7 +71,7 @@ class FaultResult:
     """What one method did about one fault in one flight."""
 
     detect_delay_s: float | None = None
-    right_surface: bool = False
+    right_surface: bool | None = None  # None: no detection of a single surface in the fault
     clear_delay_s: float | None = None
     kind: str | None = None
     stuck_position_deg: float | None = None
@@ -113,16 +114,19 @@ def score(
         faulty = int(truth.faulty_surface[k])
         if faulty < 0:
             res.false_alarms += 1
-        elif SURFACES[faulty] != e.detail["component"]:
+        elif SURFACES[faulty] not in e.detail["candidates"]:
             res.wrong_isolations += 1
     for i, f in enumerate(schedule):
         fr = FaultResult()
         during = [e for e in detections if f.start_s <= e.t_s < f.end_s]
-        if during:
-            fr.detect_delay_s = during[0].t_s - f.start_s
-            fr.right_surface = during[0].detail["component"] == f.surface
+        covering = [e for e in during if f.surface in e.detail["candidates"]]
+        singles = [e for e in during if len(e.detail["candidates"]) == 1]
+        if covering:
+            fr.detect_delay_s = covering[0].t_s - f.start_s
             first_seen.add(i)
-            res.repeated += sum(e.detail["component"] == f.surface for e in during[1:])
+        if singles:
+            fr.right_surface = singles[0].detail["component"] == f.surface
+            res.repeated += sum(e.detail["component"] == f.surface for e in singles[1:])
         nxt = schedule[i + 1].start_s if i + 1 < len(schedule) else float("inf")
         cleared = [
             e
@@ -165,16 +169,21 @@ def goal_line(results: list[FlightResult]) -> str:
     )
 
 
-def fmt_delays(values: list[float | None], rights: list[bool]) -> str:
-    """median [max] of the delays; "miss" counts undetected, "wrong" misisolated flights."""
-    ok = [v for v, r in zip(values, rights, strict=True) if v is not None and r]
+def fmt_delays(values: list[float | None], rights: list[bool | None]) -> str:
+    """median [max] of the delays; "miss" counts undetected, "wrong" misisolated flights,
+    "group only" those detected as a group of two halves and never isolated."""
+    pairs = list(zip(values, rights, strict=True))
+    ok = [v for v, r in pairs if v is not None and r]
     n_miss = sum(v is None for v in values)
-    n_wrong = sum(v is not None and not r for v, r in zip(values, rights, strict=True))
+    n_wrong = sum(v is not None and r is False for v, r in pairs)
+    n_group = sum(v is not None and r is None for v, r in pairs)
     text = f"{np.median(ok):.2f} [{max(ok):.2f}]" if ok else "-"
     if n_miss:
         text += f" {n_miss} miss"
     if n_wrong:
         text += f" {n_wrong} wrong"
+    if n_group:
+        text += f" {n_group} group only"
     return text
 
 
@@ -205,8 +214,11 @@ def scenario_section(sc: Scenario) -> list[str]:
         f"{sc.sample_rate_hz:g} Hz, trim airspeed {sc.airspeed_m_s:g} m/s, estimator model "
         f"`{model['name']}`. Faults: " + "; ".join(_describe(f) for f in sc.schedule) + ".",
         "",
-        "**Detection delay**, s after the onset: median [max] over seeds; *miss*: not detected "
-        "during the fault; *wrong*: first detection named another surface.",
+        "**Detection delay**, s after the onset (the first detection naming the surface or, "
+        "with `group_detection`, a group of two halves holding it): median [max] over seeds; "
+        "*miss*: not detected during the fault; *wrong*: the first detection of a single surface "
+        "named another surface; *group only*: detected as a group of two halves, no half "
+        "detected during the fault.",
         "",
         "| method | " + " | ".join(heads) + " | false alarms | wrong isol. | re-detections |",
         "|---|" + "---|" * (len(heads) + 3),
