@@ -657,10 +657,17 @@ def episode_swing(dec: FloatArray, h: int) -> float:
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _write_event(
-    events: FloatArray, n_ev: int, t: float, kind: float, dec: FloatArray, h: int
+def _append_event(
+    events: FloatArray,
+    n_ev: int,
+    t: float,
+    kind: float,
+    h: int,
+    onset_t: float,
+    detected_t: float,
 ) -> FloatArray:
-    """Append one event row (doubling the array when full); returns the array."""
+    """Append one event row (doubling the array when full) with the fields every event has;
+    returns the array (the row is ``events[n_ev]``)."""
     if n_ev >= events.shape[0]:
         bigger = np.empty((2 * events.shape[0], EV_LEN))
         bigger[:n_ev] = events[:n_ev]
@@ -669,9 +676,19 @@ def _write_event(
     row[EV_T] = t
     row[EV_KIND] = kind
     row[EV_HYP] = h + 1
-    row[EV_ONSET_T] = dec[h, D_ONSET_T]
-    row[EV_DETECTED_T] = dec[h, D_DETECTED_T]
+    row[EV_ONSET_T] = onset_t
+    row[EV_DETECTED_T] = detected_t
     row[EV_CLEARED_T] = t if kind == EV_CLEARED else np.nan
+    return events
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _write_event(
+    events: FloatArray, n_ev: int, t: float, kind: float, dec: FloatArray, h: int
+) -> FloatArray:
+    """Append the event row of surface ``h``; returns the array."""
+    events = _append_event(events, n_ev, t, kind, h, dec[h, D_ONSET_T], dec[h, D_DETECTED_T])
+    row = events[n_ev]
     row[EV_SWING] = episode_swing(dec, h)
     row[EV_MEAN] = episode_mean(dec, h)
     row[EV_FAULT_KIND] = dec[h, D_KIND]
@@ -1080,19 +1097,10 @@ def _write_group_event(
     a: int,
     isolated_as: int,
 ) -> FloatArray:
-    """Append one event row of the group of ``h`` and ``a`` (``isolated_as``: the half
+    """Append the event row of the group of ``h`` and ``a`` (``isolated_as``: the half
     detected, -1 for none); returns the array."""
-    if n_ev >= events.shape[0]:
-        bigger = np.empty((2 * events.shape[0], EV_LEN))
-        bigger[:n_ev] = events[:n_ev]
-        events = bigger
+    events = _append_event(events, n_ev, t, kind, h, gdec[h, G_ONSET_T], gdec[h, G_DETECTED_T])
     row = events[n_ev]
-    row[EV_T] = t
-    row[EV_KIND] = kind
-    row[EV_HYP] = h + 1
-    row[EV_ONSET_T] = gdec[h, G_ONSET_T]
-    row[EV_DETECTED_T] = gdec[h, G_DETECTED_T]
-    row[EV_CLEARED_T] = t if kind == EV_CLEARED else np.nan
     row[EV_SWING] = np.nan
     row[EV_MEAN] = np.nan
     row[EV_FAULT_KIND] = KIND_PENDING
