@@ -177,6 +177,7 @@ EV_LEN = 13
 EV_DETECTED = 1
 EV_CLEARED = 2
 EV_CLASSIFIED = 3
+EV_GROUP_ISOLATED = 4  # _decide_group's code when a half of the detected group is detected
 
 
 class BankArrays(NamedTuple):
@@ -1018,9 +1019,6 @@ def twin_pair_mass(bank: BankArrays, dec: FloatArray, probs: FloatArray, h: int,
         if has_h and has_a and not other_new:
             total += probs[f]
     return total
-
-
-EV_GROUP_ISOLATED = 4  # _decide_group: a half of the detected group has been detected
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
