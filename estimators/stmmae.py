@@ -1027,8 +1027,8 @@ FAULT_KINDS: dict[float, str] = {
 
 
 def _detail(
-    config: StmmaeConfig,
-    hyp: int,
+    component: str,
+    candidates: list[str],
     code: float,
     mean_rad: float,
     swing_rad: float,
@@ -1041,11 +1041,12 @@ def _detail(
     ``fault_kind`` is ``"pending"`` until the kind span closes (``fault_kind_window_s`` after
     the start of the detection hold, or earlier when another surface is detected during it;
     a ``fault_classified`` event then gives the judgement),
-    ``"stuck"`` (with ``stuck_position_deg``) or ``"oscillating"``."""
+    ``"stuck"`` (with ``stuck_position_deg``) or ``"oscillating"``. ``candidates``: the
+    surfaces the fault may be in (the component itself, or both halves of a group)."""
     kind = FAULT_KINDS[float(code)]
     return {
-        "component": config.hypotheses[hyp],
-        "candidates": [config.hypotheses[hyp]],
+        "component": component,
+        "candidates": candidates,
         "fault_kind": kind,
         "stuck_position_deg": _deg(mean_rad) if kind == "stuck" else None,
         "deflection_swing_deg": _deg(swing_rad),
@@ -1055,12 +1056,11 @@ def _detail(
     }
 
 
-def _fault_detail(config: StmmaeConfig, hyp: int, d: FloatArray) -> dict[str, Any]:
-    """Detail of an active fault from its decision fields."""
+def _fault_detail(config: StmmaeConfig, h: int, d: FloatArray) -> dict[str, Any]:
+    """Detail of the active fault of surface ``h`` from its decision fields."""
     dec = d.reshape(1, -1)
     return _detail(
-        config,
-        hyp,
+        *_component(config, h, -1),
         d[kern.D_KIND],
         kern.episode_mean(dec, 0),
         kern.episode_swing(dec, 0),
@@ -1085,44 +1085,21 @@ def group_name(a: str, b: str) -> str:
     return stem_a if stem_a and stem_a == stem_b else f"{a}|{b}"
 
 
-def _group_detail(
-    config: StmmaeConfig, h: int, a: int, onset_s: float, detected_s: float
-) -> dict[str, Any]:
-    """Detail of a group fault (twin halves ``h`` and ``a``, surface indices): which half is
-    not known yet, so the kind and position are not either."""
+def _component(config: StmmaeConfig, h: int, twin: int) -> tuple[str, list[str]]:
+    """Name and candidate surfaces of surface ``h``, or of the group of ``h`` and its twin
+    (surface indices; ``twin`` -1 for a single surface)."""
     surfaces = config.model.surfaces
-    return {
-        "component": group_name(surfaces[h], surfaces[a]),
-        "candidates": [surfaces[h], surfaces[a]],
-        "fault_kind": "pending",
-        "stuck_position_deg": None,
-        "deflection_swing_deg": None,
-        "deflection_autocorrelation_min": None,
-        "onset_s": _finite(onset_s),
-        "detected_s": _finite(detected_s),
-    }
+    if twin < 0:
+        return surfaces[h], [surfaces[h]]
+    return group_name(surfaces[h], surfaces[twin]), [surfaces[h], surfaces[twin]]
 
 
 def _event(row: FloatArray, config: StmmaeConfig) -> EstimatorEvent:
+    """An event from its kernel row (a group's row has a pending kind and no position)."""
     kind = EVENT_KINDS[int(row[kern.EV_KIND])]
-    if row[kern.EV_TWIN] > 0.0:
-        detail = _group_detail(
-            config,
-            int(row[kern.EV_HYP]) - 1,
-            int(row[kern.EV_TWIN]) - 1,
-            row[kern.EV_ONSET_T],
-            row[kern.EV_DETECTED_T],
-        )
-        if kind == "fault_detected":
-            detail["log_likelihood_ratio"] = _finite(round(float(row[kern.EV_LLR]), 3))
-        else:
-            half = int(row[kern.EV_ISOLATED_AS]) - 1
-            detail["cleared_s"] = _finite(row[kern.EV_T])
-            detail["isolated_as"] = config.model.surfaces[half] if half >= 0 else None
-        return EstimatorEvent(t_s=float(row[kern.EV_T]), kind=kind, detail=detail)
+    twin = int(row[kern.EV_TWIN]) - 1
     detail = _detail(
-        config,
-        int(row[kern.EV_HYP]),
+        *_component(config, int(row[kern.EV_HYP]) - 1, twin),
         row[kern.EV_FAULT_KIND],
         row[kern.EV_MEAN],
         row[kern.EV_SWING],
@@ -1134,6 +1111,9 @@ def _event(row: FloatArray, config: StmmaeConfig) -> EstimatorEvent:
         detail["log_likelihood_ratio"] = _finite(round(float(row[kern.EV_LLR]), 3))
     if kind == "fault_cleared":
         detail["cleared_s"] = _finite(row[kern.EV_CLEARED_T])
+        if twin >= 0:
+            half = int(row[kern.EV_ISOLATED_AS]) - 1
+            detail["isolated_as"] = config.model.surfaces[half] if half >= 0 else None
     return EstimatorEvent(t_s=float(row[kern.EV_T]), kind=kind, detail=detail)
 
 
@@ -1157,7 +1137,7 @@ def active_faults(config: StmmaeConfig, state: StmmaeState) -> list[dict[str, An
     """Details of the faults active at the last sample."""
     parts = state_parts(config, state)
     faults = [
-        _fault_detail(config, h + 1, d)
+        _fault_detail(config, h, d)
         for h, d in enumerate(parts.decisions)
         if d[kern.D_ACTIVE] == 1.0
     ]
@@ -1165,7 +1145,18 @@ def active_faults(config: StmmaeConfig, state: StmmaeState) -> list[dict[str, An
     for h, g in enumerate(parts.groups):
         if g[kern.G_ACTIVE] == 1.0:
             a = kern.twin_index(arr.collinear, h)
-            faults.append(_group_detail(config, h, a, g[kern.G_ONSET_T], g[kern.G_DETECTED_T]))
+            nan = math.nan  # a group has no kind, position or swing yet
+            faults.append(
+                _detail(
+                    *_component(config, h, a),
+                    kern.KIND_PENDING,
+                    nan,
+                    nan,
+                    nan,
+                    g[kern.G_ONSET_T],
+                    g[kern.G_DETECTED_T],
+                )
+            )
     return faults
 
 

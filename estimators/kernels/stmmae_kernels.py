@@ -884,6 +884,7 @@ def _decide(
     dt: float,
     prob: float,
     iso: float,
+    iso_level: float,
     defl: float,
     defl_var: float,
     cmd: float,
@@ -898,9 +899,10 @@ def _decide(
     ``dec[h]``; after a clearance it calls :func:`reset_after_clearance`).
 
     Detection needs, held together for ``CFG_HOLD_S`` (``CFG_HOLD_ACTIVE_S`` while another
-    surface is in fault, ``others_active``): the marginal probability ``prob`` and
-    the isolation odds ``iso`` (the surface's probability of being the only new fault against
-    its strongest competitor's) above ``CFG_DETECT_P``, the smoothed deflection estimate more
+    surface is in fault, ``others_active``): the marginal probability ``prob`` above
+    ``CFG_DETECT_P`` and the isolation odds ``iso`` (the surface's probability of being the only
+    new fault against its strongest competitor's) above ``iso_level`` (``CFG_DETECT_P``, or
+    ``CFG_GROUP_ISO`` while the surface's group is detected), the smoothed deflection estimate more
     than ``CFG_MIN_ERR`` from the command, and at the end the log-likelihood ratio between the
     nested families (:func:`_relevant_loglik`) summed over the run at least ``CFG_MIN_LLR``.
     ``kval`` is the value the kind history records (``defl``, or ``defl`` corrected by an
@@ -928,7 +930,7 @@ def _decide(
     if not active:
         holds = (
             prob > cfg[CFG_DETECT_P]
-            and iso > cfg[CFG_DETECT_P]
+            and iso > iso_level
             and abs(dec[h, D_SMOOTH] - cmd) > deflection_gate(cfg, defl_var)
         )
         if holds:
@@ -1376,6 +1378,7 @@ def _bank_kernel(
     gdec = st[lay_groups : lay_groups + ns * G_LEN].copy().reshape((ns, G_LEN))
     groups_on = cfg[CFG_GROUP] != 0.0
     twin_of = np.full(ns, -1, dtype=np.int64)
+    unit_q = np.empty(ns)
     for g in range(ns):
         twin_of[g] = twin_index(bank.collinear, g)
     rebase = cfg[CFG_REBASE] != 0.0
@@ -1544,16 +1547,11 @@ def _bank_kernel(
             dec[h, D_PROB] = pm[h]
             cmd = applied[surface_inputs[h]]  # the command as the surface follows it
             llr = rel_in[h] - rel_base[h] if nv > 0 and dec[h, D_ACTIVE] != 1.0 else 0.0
-            iso_h = iso[h]
+            # while its group is detected, a half is named on the stronger odds CFG_GROUP_ISO
+            iso_level = cfg[CFG_DETECT_P]
             lead = min(h, twin_of[h])
-            # while the group is detected, the half is named on the stronger odds CFG_GROUP_ISO
-            if (
-                groups_on
-                and lead >= 0
-                and gdec[lead, G_ACTIVE] == 1.0
-                and not iso_h > cfg[CFG_GROUP_ISO]
-            ):
-                iso_h = min(iso_h, cfg[CFG_DETECT_P])
+            if groups_on and lead >= 0 and gdec[lead, G_ACTIVE] == 1.0:
+                iso_level = max(iso_level, cfg[CFG_GROUP_ISO])
             code = _decide(
                 cfg,
                 dec,
@@ -1562,7 +1560,8 @@ def _bank_kernel(
                 tk,
                 dt,
                 pm[h],
-                iso_h,
+                iso[h],
+                iso_level,
                 defl,
                 vsum[h] / pm[h],
                 cmd,
@@ -1608,21 +1607,26 @@ def _bank_kernel(
                             events = _write_event(events, n_ev, tk, EV_CLASSIFIED, dec, h)
                             n_ev += 1
         if groups_on:
+            # probability that the new fault is in each unit not in fault: a surface, or a group
+            # of twins not in fault (either half or both, on its first half's row; -1 elsewhere)
+            for g in range(ns):
+                b = twin_of[g]
+                unit_q[g] = -1.0
+                if dec[g, D_ACTIVE] == 1.0:
+                    continue
+                if b < 0 or dec[b, D_ACTIVE] == 1.0:
+                    unit_q[g] = p_new[g]
+                elif b > g:
+                    unit_q[g] = p_new[g] + p_new[b] + twin_pair_mass(bank, dec, probs, g, b)
             for h in range(ns):
                 a = twin_of[h]
                 if a <= h:
                     continue
-                q = p_new[h] + p_new[a] + twin_pair_mass(bank, dec, probs, h, a)
+                q = max(unit_q[h], 0.0)
                 comp = 0.0
                 for o in range(ns):
-                    if o in (h, a) or dec[o, D_ACTIVE] == 1.0:
-                        continue
-                    mass = p_new[o]
-                    b = twin_of[o]
-                    if b >= 0 and b != h and b != a and dec[b, D_ACTIVE] != 1.0:
-                        mass += p_new[b] + twin_pair_mass(bank, dec, probs, o, b)
-                    if mass > comp:
-                        comp = mass
+                    if o != h and o != a and unit_q[o] > comp:
+                        comp = unit_q[o]
                 iso_g = q / (q + comp) if q + comp > 0.0 else 0.0
                 deflected = False
                 for x in (h, a):
