@@ -356,6 +356,17 @@ class StmmaeConfig(EstimatorConfigModel):
         description="detection hold time of a group of two halves, s (twice hold_s: the "
         "group's probability sums three hypotheses, so the same data pass its level sooner)",
     )
+    group_onset_window_s: Number = Field(
+        3.0,
+        gt=0.0,
+        le=3600.0,
+        description="a group of two halves is detected only within this time of its onset "
+        "(the start of the run of its probability above onset_probability), s: a fault shows "
+        "its deflection soon after its probability rises, while a group probability held high "
+        "with both halves' estimates near their commands is what a model mismatch gives (both "
+        "halves' filters absorbing the error alike); a half is still detected by its own "
+        "conditions",
+    )
     group_isolation_odds: Number = Field(
         0.99,
         gt=0.0,
@@ -539,6 +550,7 @@ def _kernel_vector(config: StmmaeConfig) -> FloatArray:
     cfg[kern.CFG_GROUP] = 1.0 if config.group_detection else 0.0
     cfg[kern.CFG_GROUP_ISO] = config.group_isolation_odds
     cfg[kern.CFG_GROUP_HOLD_S] = config.group_hold_s
+    cfg[kern.CFG_GROUP_WINDOW_S] = config.group_onset_window_s
     cfg[kern.CFG_CLEAR_DEFL] = math.radians(config.clear_deflection_deg)
     cfg[kern.CFG_CLEAR_SMOOTH_S] = config.clear_smoothing_s
     cfg[kern.CFG_MIN_LLR] = config.min_log_likelihood_ratio

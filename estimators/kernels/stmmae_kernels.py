@@ -73,7 +73,8 @@ CFG_KIND_TWIN = 25  # 1: a fault's kind history is conditioned on the active stu
 CFG_GROUP = 26  # 1: twin halves are detected together ("one of the two") before one is isolated
 CFG_GROUP_ISO = 27  # isolation odds a half needs while its group is detected
 CFG_GROUP_HOLD_S = 28  # detection hold time of a group
-CFG_LEN = 29
+CFG_GROUP_WINDOW_S = 29  # a group is detected only this long after its onset
+CFG_LEN = 30
 COLLINEAR_STEPS = 20  # model steps over which a deflection's effect on the measurements is taken
 
 KIND_BLOCK_S = 0.05  # the kind test reads the deflection estimate as means over 0.05 s blocks
@@ -1048,7 +1049,9 @@ def _decide_group(
     above ``CFG_DETECT_P``; one half's smoothed deflection estimate passes its deflection gate
     (``deflected``); and at the end the evidence ``llr`` (the better half's filter against the
     base family, per sample) summed over the run is at least ``CFG_MIN_LLR``: the conditions of
-    a surface's detection with the group in place of the surface. It ends when either half is
+    a surface's detection with the group in place of the surface; and the detection comes no
+    later than ``CFG_GROUP_WINDOW_S`` after the group's onset (the start of the run of ``q`` above
+    ``CFG_ONSET_P``). It ends when either half is
     detected (``EV_GROUP_ISOLATED``), or is cleared when ``q`` is below ``CFG_CLEAR_P`` and both
     halves follow their commands (``back``) for ``CFG_CLEAR_HOLD_S``."""
     if gdec[h, G_ACTIVE] == 1.0:
@@ -1067,7 +1070,8 @@ def _decide_group(
             gdec[h, G_ONSET_T] = t
     else:
         gdec[h, G_ONSET_T] = np.nan
-    if any_active or not (q > cfg[CFG_DETECT_P] and iso > cfg[CFG_DETECT_P] and deflected):
+    late = t - gdec[h, G_ONSET_T] > cfg[CFG_GROUP_WINDOW_S] + HOLD_TOL_S
+    if any_active or late or not (q > cfg[CFG_DETECT_P] and iso > cfg[CFG_DETECT_P] and deflected):
         gdec[h, G_ABOVE_T] = np.nan
         return 0
     if math.isnan(gdec[h, G_ABOVE_T]):

@@ -1349,6 +1349,28 @@ def test_group_decision_detects_isolates_and_clears() -> None:
     ]
 
 
+def test_a_group_is_detected_only_within_its_onset_window() -> None:
+    """A group whose probability has stayed above the onset level for longer than
+    ``group_onset_window_s`` before the other conditions hold is not detected (the signature of
+    a model mismatch both halves' filters absorb); a fresh onset opens the window again."""
+    config = stmmae.parse_config({"group_onset_window_s": 1.0})
+    n = 400
+    late = [False] * 150 + [True] * (n - 150)  # a half off its command from 1.5 s
+    codes = _decide_group_run(config, [0.95] * n, [0.95] * n, [1.0] * n, late, [False] * n)
+    assert codes == []
+    # the same deflection 0.9 s after the onset: detected after the hold
+    early = [False] * 90 + [True] * (n - 90)
+    codes = _decide_group_run(config, [0.95] * n, [0.95] * n, [1.0] * n, early, [False] * n)
+    assert codes == [(0.9 + config.group_hold_s, kern.EV_DETECTED)]
+    # a hold that would end past the window does not complete
+    edge = [False] * 95 + [True] * (n - 95)
+    assert _decide_group_run(config, [0.95] * n, [0.95] * n, [1.0] * n, edge, [False] * n) == []
+    # the probability falls below the onset level and rises again: a new window
+    q = [0.95] * 100 + [0.3] * 10 + [0.95] * (n - 110)
+    codes = _decide_group_run(config, q, [0.95] * n, [1.0] * n, late, [False] * n)
+    assert codes == [(1.5 + config.group_hold_s, kern.EV_DETECTED)]
+
+
 def test_a_split_surface_fault_is_detected_as_its_group_before_the_half_is_isolated(
     flight,
 ) -> None:
