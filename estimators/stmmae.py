@@ -66,7 +66,7 @@ from estimators.kernels.stmmae_kernels import IntArray
 from estimators.models.small_uav import reference_model
 
 NAME = "stmmae"
-STATE_VERSION = 5
+STATE_VERSION = 6
 
 Variant = Literal["improved", "strong_tracking", "emmae"]
 Likelihood = Literal["euclidean", "gaussian"]
@@ -133,6 +133,12 @@ class LinearModel(EstimatorConfigModel):
     P0: Matrix = Field(description="(n, n) initial covariance of x - x*, PD")  # noqa: N815
     x_trim: tuple[Number, ...] = Field(description="(n,) trim state x*")
     u_trim: tuple[Number, ...] = Field(description="(m,) trim inputs u* (surfaces in rad)")
+    operating_range: dict[str, tuple[Number, Number]] = Field(
+        default_factory=dict,
+        description="where the model holds: [low, high] of a measurement (by name, model units) "
+        "smoothed over operating_range_smoothing_s; while one is outside, no new fault is "
+        "detected and the status is 'unknown' (empty: no bound)",
+    )
 
     @model_validator(mode="after")
     def _consistent(self) -> LinearModel:
@@ -162,6 +168,12 @@ class LinearModel(EstimatorConfigModel):
         _check_covariance("model.Q", self.Q, definite=False)
         _check_covariance("model.R", self.R, definite=True)
         _check_covariance("model.P0", self.P0, definite=True)
+        names = [y.name for y in self.measurements]
+        for key, (low, high) in self.operating_range.items():
+            if key not in names:
+                raise ValueError(f"model.operating_range: {key!r} is not a measurement")
+            if not low < high:
+                raise ValueError(f"model.operating_range.{key}: low must be below high")
         return self
 
     @property
@@ -361,11 +373,19 @@ class StmmaeConfig(EstimatorConfigModel):
         gt=0.0,
         le=3600.0,
         description="a group of two halves is detected only within this time of its onset "
-        "(the start of the run of its probability above onset_probability), s: a fault shows "
+        "(its probability's first rise above onset_probability since it was last below "
+        "clear_probability), s: a fault shows "
         "its deflection soon after its probability rises, while a group probability held high "
         "with both halves' estimates near their commands is what a model mismatch gives (both "
         "halves' filters absorbing the error alike); a half is still detected by its own "
         "conditions",
+    )
+    operating_range_smoothing_s: Number = Field(
+        10.0,
+        gt=0.0,
+        le=3600.0,
+        description="time constant over which the measurements bounded by the model's "
+        "operating_range are smoothed before they are compared with it, s",
     )
     group_isolation_odds: Number = Field(
         0.99,
@@ -551,6 +571,7 @@ def _kernel_vector(config: StmmaeConfig) -> FloatArray:
     cfg[kern.CFG_GROUP_ISO] = config.group_isolation_odds
     cfg[kern.CFG_GROUP_HOLD_S] = config.group_hold_s
     cfg[kern.CFG_GROUP_WINDOW_S] = config.group_onset_window_s
+    cfg[kern.CFG_RANGE_SMOOTH_S] = config.operating_range_smoothing_s
     cfg[kern.CFG_CLEAR_DEFL] = math.radians(config.clear_deflection_deg)
     cfg[kern.CFG_CLEAR_SMOOTH_S] = config.clear_smoothing_s
     cfg[kern.CFG_MIN_LLR] = config.min_log_likelihood_ratio
@@ -676,6 +697,14 @@ def build_bank(config: StmmaeConfig) -> kern.BankArrays:
         slot_surface=slot_surface,
         floors=floors,
         collinear=_collinearity(phi, ha, r, slot_surface, n, len(surf_idx)),
+        range_lo=np.array(
+            [mdl.operating_range.get(y.name, (-math.inf, math.inf))[0] for y in mdl.measurements],
+            dtype=np.float64,
+        ),
+        range_hi=np.array(
+            [mdl.operating_range.get(y.name, (-math.inf, math.inf))[1] for y in mdl.measurements],
+            dtype=np.float64,
+        ),
     )
     for a in arrays:
         a.setflags(write=False)
@@ -717,10 +746,10 @@ class StmmaeState:
         version: schema version (``STATE_VERSION``).
         t_last_s: time of the last sample seen (-inf before any).
         vector: FloatArray  # (layout.length,) packed parts, never modified in place.
-        layout_version: the layout ``vector`` has: ``STATE_VERSION``, or 2, 3 or 4 for a
+        layout_version: the layout ``vector`` has: ``STATE_VERSION``, or 2, 3, 4 or 5 for a
             state of that version just loaded, whose new parts need the configuration and are
             added by the first :func:`state_parts` or :func:`step` (see
-            :func:`_upgrade_layout_v2`, :func:`_upgrade_layout_v3`, :func:`_upgrade_layout_v4`).
+            :func:`_upgrade_layout_v2` to :func:`_upgrade_layout_v5`).
     """
 
     version: int
@@ -753,6 +782,10 @@ class StateParts:
             servo model's output; version 4).
         groups: FloatArray  # (s, kern.G_LEN) group decision fields (``G_*``) on the row of
             the first half of each pair of twin halves (version 5).
+        operating: FloatArray  # (p,) measurements smoothed for the operating range (NaN until
+            a first value, and for measurements without bounds; version 6).
+        outside_samples: FloatArray  # (1,) samples outside the operating range in the open
+            health window (version 6).
     """
 
     samples_seen: float
@@ -769,6 +802,8 @@ class StateParts:
     window: FloatArray
     applied: FloatArray
     groups: FloatArray
+    operating: FloatArray
+    outside_samples: FloatArray
 
 
 def layout(config: StmmaeConfig) -> kern.Layout:
@@ -808,7 +843,9 @@ def state_parts(config: StmmaeConfig, state: StmmaeState) -> StateParts:
         kind_blocks=vec[lay.kind_blocks : lay.window].reshape(lay.s, kern.KIND_BLOCKS),
         window=vec[lay.window : lay.window + kern.W_LEN],
         applied=vec[lay.applied : lay.applied + m],
-        groups=vec[lay.groups : lay.length].reshape(lay.s, kern.G_LEN),
+        groups=vec[lay.groups : lay.operating].reshape(lay.s, kern.G_LEN),
+        operating=vec[lay.operating : lay.operating + p],
+        outside_samples=vec[lay.operating + p : lay.length],
     )
 
 
@@ -837,13 +874,14 @@ def initial_state(config: StmmaeConfig) -> StmmaeState:
         g = lay.groups + h * kern.G_LEN
         for idx in kern.G_TIMES:
             vec[g + idx] = np.nan
+    vec[lay.operating : lay.operating + lay.p] = np.nan
     vec.setflags(write=False)
     return StmmaeState(version=STATE_VERSION, t_last_s=-math.inf, vector=vec)
 
 
 def dump_state(state: StmmaeState) -> bytes:
     """Versioned byte form of the state (exact round trip; see :func:`dump_vector_state`). A
-    loaded version-2, -3 or -4 state not stepped yet is written back as the state it is."""
+    loaded version-2, -3, -4 or -5 state not stepped yet is written back as the state it is."""
     return dump_vector_state(NAME, state.layout_version, state.t_last_s, state.vector)
 
 
@@ -940,7 +978,22 @@ def _upgrade_layout_v4(config: StmmaeConfig, vector: FloatArray) -> FloatArray:
             f"version-4 state of length {vector.shape[0]} does not fit this configuration "
             f"(expected {lay.groups})"
         )
-    fresh = np.concatenate([vector, initial_state(config).vector[lay.groups :]])
+    fresh = np.concatenate([vector, initial_state(config).vector[lay.groups : lay.operating]])
+    fresh.setflags(write=False)
+    return fresh
+
+
+def _upgrade_layout_v5(config: StmmaeConfig, vector: FloatArray) -> FloatArray:
+    """Version 5 -> 6: version 6 appends the operating range's smoothed measurements (unset:
+    the next valid values start them) and its count of samples outside it in the open window
+    (0: the window's earlier samples were not checked)."""
+    lay = layout(config)
+    if vector.shape != (lay.operating,):
+        raise EstimatorError(
+            f"version-5 state of length {vector.shape[0]} does not fit this configuration "
+            f"(expected {lay.operating})"
+        )
+    fresh = np.concatenate([vector, initial_state(config).vector[lay.operating :]])
     fresh.setflags(write=False)
     return fresh
 
@@ -954,11 +1007,13 @@ def _current_vector(config: StmmaeConfig, state: StmmaeState) -> FloatArray:
         vector = _upgrade_layout_v3(config, vector)
     if state.layout_version <= 4:
         vector = _upgrade_layout_v4(config, vector)
+    if state.layout_version <= 5:
+        vector = _upgrade_layout_v5(config, vector)
     return vector
 
 
 _UPGRADES: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {1: _upgrade_v1}
-_LAYOUT_VERSIONS = (2, 3, 4, STATE_VERSION)  # versions whose vector this code reads directly
+_LAYOUT_VERSIONS = (2, 3, 4, 5, STATE_VERSION)  # versions whose vector this code reads directly
 
 
 def load_state(data: bytes) -> StmmaeState:
@@ -1172,12 +1227,34 @@ def active_faults(config: StmmaeConfig, state: StmmaeState) -> list[dict[str, An
     return faults
 
 
+def outside_operating_range(config: StmmaeConfig, state: StmmaeState) -> list[str]:
+    """One reason per measurement whose smoothed value is outside the model's operating range
+    at the last sample (empty: inside, or no bound)."""
+    smoothed = state_parts(config, state).operating
+    reasons = []
+    for a, meas in enumerate(config.model.measurements):
+        bounds = config.model.operating_range.get(meas.name)
+        value = float(smoothed[a])
+        if bounds is None or not math.isfinite(value) or bounds[0] <= value <= bounds[1]:
+            continue
+        reasons.append(
+            f"{meas.name} {value:.4g} (smoothed over {config.operating_range_smoothing_s:g} s) "
+            f"outside the model's operating range {bounds[0]:g} to {bounds[1]:g}: "
+            "no new fault is detected"
+        )
+    return reasons
+
+
 def status_report(config: StmmaeConfig, state: StmmaeState) -> StatusReport:
-    """ "alert" while a fault is active, "watch" while a surface's fault probability is above
-    ``watch_probability`` without being confirmed, else "ok"."""
+    """ "alert" while a fault is active; "unknown" while a measurement is outside the model's
+    operating range (no new fault is detected there); "watch" while a surface's fault
+    probability is above ``watch_probability`` without being confirmed; else "ok"."""
     faults = active_faults(config, state)
+    outside = outside_operating_range(config, state)
     if faults:
-        return StatusReport("alert", tuple(_fault_reason(f) for f in faults))
+        return StatusReport("alert", tuple(_fault_reason(f) for f in faults) + tuple(outside))
+    if outside:
+        return StatusReport("unknown", tuple(outside))
     watch = [
         f"{s} fault probability {p:.2f} above {config.watch_probability:g}, not confirmed"
         for s, p in surface_probabilities(config, state).items()
@@ -1198,6 +1275,7 @@ def diagnosis(config: StmmaeConfig, state: StmmaeState) -> Diagnosis:
             "surface_fault_probabilities": surface_probabilities(config, state),
             "active_faults": active_faults(config, state),
             "deflection_estimates_deg": defl,
+            "outside_operating_range": outside_operating_range(config, state),
             "variant": config.variant,
             "likelihood": config.likelihood,
         },
@@ -1212,6 +1290,7 @@ def _health(row: FloatArray, config: StmmaeConfig) -> HealthWindow:
         "nis_nominal_mean": _finite(row[kern.WIN_NIS_MEAN]),
         "active_fault_fraction": _finite(row[kern.WIN_ACTIVE_FRACTION]),
         "covariance_failures": _finite(row[kern.WIN_COV_FAIL]),
+        "outside_operating_range_fraction": _finite(row[kern.WIN_OUTSIDE_FRACTION]),
     }
     reasons: list[str] = []
     status: Status = "ok"
@@ -1230,6 +1309,14 @@ def _health(row: FloatArray, config: StmmaeConfig) -> HealthWindow:
     if nis is not None and nis > config.nis_watch and status == "ok":
         status = "watch"
         reasons.append(f"nis_nominal_mean {nis:.3g} > nis_watch {config.nis_watch:g}")
+    outside = indicators["outside_operating_range_fraction"] or 0.0
+    if outside > 0.0:
+        if status != "alert":
+            status = "unknown"
+        reasons.append(
+            f"outside the model's operating range during {100 * outside:.0f} % of the window: "
+            "no new fault detected there"
+        )
     if (indicators["covariance_failures"] or 0.0) > 0.0:
         status = "alert"
         reasons.append("innovation covariance not positive definite: filter diverging")
@@ -1286,7 +1373,7 @@ def step(config: StmmaeConfig, state: StmmaeState, batch: Batch) -> tuple[Stmmae
     if batch.end_of_run and wacc[kern.W_COUNT] > 0.0:
         # the run is closed: its partial health window is scored now
         row = np.empty((1, kern.WIN_LEN))
-        kern._close_window(wacc, float(t[n - 1]), row[0])
+        kern._close_window(wacc, vec[lay.operating + lay.p : lay.length], float(t[n - 1]), row[0])
         windows = np.concatenate([windows, row])
     vec.setflags(write=False)
     new_state = StmmaeState(version=STATE_VERSION, t_last_s=float(t[n - 1]), vector=vec)

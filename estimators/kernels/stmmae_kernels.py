@@ -77,7 +77,8 @@ CFG_GROUP = 26  # 1: twin halves are detected together ("one of the two") before
 CFG_GROUP_ISO = 27  # isolation odds a half needs while its group is detected
 CFG_GROUP_HOLD_S = 28  # detection hold time of a group
 CFG_GROUP_WINDOW_S = 29  # a group is detected only this long after its onset
-CFG_LEN = 30
+CFG_RANGE_SMOOTH_S = 30  # time constant of the measurements smoothed for the operating range
+CFG_LEN = 31
 COLLINEAR_STEPS = 20  # model steps over which a deflection's effect on the measurements is taken
 
 KIND_BLOCK_S = 0.05  # the kind test reads the deflection estimate as means over 0.05 s blocks
@@ -161,7 +162,8 @@ WIN_MAX_FAULT_HYP = 5
 WIN_NIS_MEAN = 6  # mean of NIS / (number of measurements used), no-fault filter
 WIN_ACTIVE_FRACTION = 7
 WIN_COV_FAIL = 8
-WIN_LEN = 9
+WIN_OUTSIDE_FRACTION = 9  # share of the samples with the smoothed measurements outside the range
+WIN_LEN = 10
 
 # event rows
 EV_T = 0
@@ -214,6 +216,8 @@ class BankArrays(NamedTuple):
         floors: (nh,) probability floor of each hypothesis.
         collinear: (s, s) cosine between two surfaces' whitened effects on the measurements
             over the ``COLLINEAR_STEPS`` steps after a deflection (1 on the diagonal).
+        range_lo, range_hi: (p,) the model's operating range: bounds of each measurement
+            smoothed over ``CFG_RANGE_SMOOTH_S`` (-inf / +inf: not bounded).
     """
 
     phi: FloatArray
@@ -243,6 +247,8 @@ class BankArrays(NamedTuple):
     slot_surface: IntArray
     floors: FloatArray
     collinear: FloatArray
+    range_lo: FloatArray
+    range_hi: FloatArray
 
 
 class Layout(NamedTuple):
@@ -262,6 +268,8 @@ class Layout(NamedTuple):
     window: int
     applied: int  # (m,) the inputs applied over the step into the next sample (servo model)
     groups: int  # (s, G_LEN) group decision fields (twin halves detected together)
+    operating: int  # (p,) smoothed measurements of the operating range, then (1,) the count of
+    # samples outside it in the open health window
     length: int
 
 
@@ -291,6 +299,7 @@ def state_layout(nh: int, na: int, p: int, m: int, s: int) -> Layout:
         applied,
         applied + m,
         applied + m + s * G_LEN,
+        applied + m + s * G_LEN + p + 1,
     )
 
 
@@ -1053,8 +1062,8 @@ def _decide_group(
     (``deflected``); and at the end the evidence ``llr`` (the better half's filter against the
     base family, per sample) summed over the run is at least ``CFG_MIN_LLR``: the conditions of
     a surface's detection with the group in place of the surface; and the detection comes no
-    later than ``CFG_GROUP_WINDOW_S`` after the group's onset (the start of the run of ``q`` above
-    ``CFG_ONSET_P``). It ends when either half is
+    later than ``CFG_GROUP_WINDOW_S`` after the group's onset (the first sample of ``q`` above
+    ``CFG_ONSET_P`` since ``q`` was last below ``CFG_CLEAR_P``). It ends when either half is
     detected (``EV_GROUP_ISOLATED``), or is cleared when ``q`` is below ``CFG_CLEAR_P`` and both
     halves follow their commands (``back``) for ``CFG_CLEAR_HOLD_S``."""
     if gdec[h, G_ACTIVE] == 1.0:
@@ -1068,10 +1077,12 @@ def _decide_group(
         else:
             gdec[h, G_BELOW_T] = np.nan
         return 0
+    # the onset: the first sample above the onset level since the probability was last below the
+    # clearance level (a dip between the two levels does not restart it)
     if q > cfg[CFG_ONSET_P]:
         if math.isnan(gdec[h, G_ONSET_T]):
             gdec[h, G_ONSET_T] = t
-    else:
+    elif q < cfg[CFG_CLEAR_P]:
         gdec[h, G_ONSET_T] = np.nan
     late = t - gdec[h, G_ONSET_T] > cfg[CFG_GROUP_WINDOW_S] + HOLD_TOL_S
     if any_active or late or not (q > cfg[CFG_DETECT_P] and iso > cfg[CFG_DETECT_P] and deflected):
@@ -1116,6 +1127,26 @@ def _write_group_event(
     row[EV_TWIN] = a + 1
     row[EV_ISOLATED_AS] = isolated_as + 1
     return events
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _outside_range(bank: BankArrays, ysm: FloatArray, y_k: FloatArray, a_range: float) -> bool:
+    """Smooth each bounded measurement (first-order, share ``a_range`` of the gap per sample;
+    the first valid value starts it; a missing value holds it) and return whether any smoothed
+    value is outside ``[range_lo, range_hi]``."""
+    outside = False
+    for a in range(ysm.shape[0]):
+        if not (bank.range_lo[a] > -np.inf or bank.range_hi[a] < np.inf):
+            continue
+        v = y_k[a]
+        if math.isfinite(v):
+            if math.isnan(ysm[a]):
+                ysm[a] = v
+            else:
+                ysm[a] += a_range * (v - ysm[a])
+        if ysm[a] < bank.range_lo[a] or ysm[a] > bank.range_hi[a]:
+            outside = True
+    return outside
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -1243,7 +1274,9 @@ def reset_after_clearance(dec: FloatArray, h: int) -> None:
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _close_window(wacc: FloatArray, t_end: float, row: FloatArray) -> None:
+def _close_window(wacc: FloatArray, n_out: FloatArray, t_end: float, row: FloatArray) -> None:
+    """Write the health window's row from its accumulators ``wacc`` and ``n_out`` (the count
+    of samples outside the operating range), then reset them."""
     row[:] = np.nan
     n = wacc[W_COUNT]
     row[WIN_T0] = wacc[W_T0]
@@ -1256,7 +1289,9 @@ def _close_window(wacc: FloatArray, t_end: float, row: FloatArray) -> None:
         row[WIN_NIS_MEAN] = wacc[W_SUM_NIS] / wacc[W_N_NIS]
     row[WIN_ACTIVE_FRACTION] = wacc[W_N_ACTIVE] / n
     row[WIN_COV_FAIL] = wacc[W_COV_FAIL]
+    row[WIN_OUTSIDE_FRACTION] = n_out[0] / n
     wacc[:] = 0.0
+    n_out[0] = 0.0
 
 
 def bank_batch(
@@ -1383,6 +1418,9 @@ def _bank_kernel(
     dec = st[lay_dec : lay_dec + ns * D_LEN].copy().reshape((ns, D_LEN))
     kbuf = st[lay_kind:lay_win].copy().reshape((ns, KIND_BLOCKS))
     gdec = st[lay_groups : lay_groups + ns * G_LEN].copy().reshape((ns, G_LEN))
+    lay_op = lay_groups + ns * G_LEN
+    ysm = st[lay_op : lay_op + p]  # smoothed measurements of the operating range (views)
+    n_out = st[lay_op + p : lay_op + p + 1]
     groups_on = cfg[CFG_GROUP] != 0.0
     twin_of = np.full(ns, -1, dtype=np.int64)
     unit_q = np.empty(ns)
@@ -1503,6 +1541,9 @@ def _bank_kernel(
             row += 1
         dt = tk - st[ST_T_PREV] if st[ST_N_SEEN] > 0.0 else 0.0
         a_smooth = 1.0 - math.exp(-dt / cfg[CFG_SMOOTH_S])
+        # operating range: outside while a bounded measurement, smoothed, is beyond its bounds;
+        # no new detection is made there (the model does not hold)
+        outside = _outside_range(bank, ysm, y[:, k], 1.0 - math.exp(-dt / cfg[CFG_RANGE_SMOOTH_S]))
         a_clear = 1.0 - math.exp(-dt / cfg[CFG_CLEAR_SMOOTH_S])
         any_active = False
         max_fault = -1.0
@@ -1559,6 +1600,8 @@ def _bank_kernel(
             lead = min(h, twin_of[h])
             if groups_on and lead >= 0 and gdec[lead, G_ACTIVE] == 1.0:
                 iso_level = max(iso_level, cfg[CFG_GROUP_ISO])
+            if outside:
+                iso_level = np.inf  # no odds pass: detection withheld
             code = _decide(
                 cfg,
                 dec,
@@ -1657,7 +1700,7 @@ def _bank_kernel(
                     llr_g,
                     deflected,
                     back,
-                    n_active_after > 0,
+                    n_active_after > 0 or outside,
                 )
                 if code == EV_GROUP_ISOLATED:
                     half = h if dec[h, D_ACTIVE] == 1.0 else a
@@ -1687,9 +1730,11 @@ def _bank_kernel(
             wacc[W_N_NIS] += 1.0
         if any_active:
             wacc[W_N_ACTIVE] += 1.0
+        if outside:
+            n_out[0] += 1.0
         wacc[W_COV_FAIL] += fails
         if wacc[W_COUNT] >= hw:
-            _close_window(wacc, tk, windows[n_win])
+            _close_window(wacc, n_out, tk, windows[n_win])
             n_win += 1
         # servo model: a healthy surface follows its command through a first-order lag; the
         # other inputs (throttle) act as commanded, one step later

@@ -628,11 +628,11 @@ def test_episode_statistics_are_precision_weighted() -> None:
 DATA = Path(__file__).parent / "data"
 
 
-@pytest.mark.parametrize("version", [1, 2, 3, 4])
+@pytest.mark.parametrize("version", [1, 2, 3, 4, 5])
 def test_older_state_fixtures_load_and_step(version) -> None:
     """States dumped by earlier code (version 1: equal-weight episode sums; version 2; version
     3, dumped before the detection evidence was re-based; version 4, before the group decision
-    fields) load,
+    fields; version 5, before the operating range) load,
     keep their filters and probabilities, and step on: the stuck right aileron of the fixture's
     flight (6 s, stuck at +12 deg from 2 s) stays the active fault."""
     blob = (DATA / f"stmmae_state_v{version}.bin").read_bytes()
@@ -1353,9 +1353,10 @@ def test_group_decision_detects_isolates_and_clears() -> None:
 
 
 def test_a_group_is_detected_only_within_its_onset_window() -> None:
-    """A group whose probability has stayed above the onset level for longer than
-    ``group_onset_window_s`` before the other conditions hold is not detected (the signature of
-    a model mismatch both halves' filters absorb); a fresh onset opens the window again."""
+    """A group whose probability rose above the onset level longer than
+    ``group_onset_window_s`` ago, without falling below the clearance level since, is not
+    detected when the other conditions come to hold (the signature of a model mismatch both
+    halves' filters absorb); a fresh onset opens the window again."""
     config = stmmae.parse_config({"group_onset_window_s": 1.0})
     n = 400
     late = [False] * 150 + [True] * (n - 150)  # a half off its command from 1.5 s
@@ -1368,8 +1369,11 @@ def test_a_group_is_detected_only_within_its_onset_window() -> None:
     # a hold that would end past the window does not complete
     edge = [False] * 95 + [True] * (n - 95)
     assert _decide_group_run(config, [0.95] * n, [0.95] * n, [1.0] * n, edge, [False] * n) == []
-    # the probability falls below the onset level and rises again: a new window
+    # a dip below the onset level but not below the clearance level keeps the onset...
     q = [0.95] * 100 + [0.3] * 10 + [0.95] * (n - 110)
+    assert _decide_group_run(config, q, [0.95] * n, [1.0] * n, late, [False] * n) == []
+    # ...a fall below the clearance level ends it: the next rise opens a new window
+    q = [0.95] * 100 + [0.01] * 10 + [0.95] * (n - 110)
     codes = _decide_group_run(config, q, [0.95] * n, [1.0] * n, late, [False] * n)
     assert codes == [(1.5 + config.group_hold_s, kern.EV_DETECTED)]
 
@@ -1434,6 +1438,66 @@ def test_version_4_state_gets_fresh_group_fields() -> None:
     lay = stmmae.layout(config)
     np.testing.assert_array_equal(stmmae._current_vector(config, state)[: lay.groups], state.vector)
     assert json.loads(stmmae.dump_state(state))["version"] == 4
+
+
+def test_version_5_state_gets_a_fresh_operating_range() -> None:
+    """Version 5 -> 6 appends the operating range's parts as a fresh state has them (no
+    smoothed value yet, no sample counted outside); every other part is kept."""
+    blob = (DATA / "stmmae_state_v5.bin").read_bytes()
+    config = stmmae.parse_config({"health_window_samples": 250})
+    state = stmmae.load_state(blob)
+    assert state.layout_version == 5
+    parts = stmmae.state_parts(config, state)
+    assert np.isnan(parts.operating).all() and parts.outside_samples.tolist() == [0.0]
+    lay = stmmae.layout(config)
+    np.testing.assert_array_equal(
+        stmmae._current_vector(config, state)[: lay.operating], state.vector
+    )
+    assert json.loads(stmmae.dump_state(state))["version"] == 5
+
+
+# ----------------------------------------------------------------------------- operating range
+def test_operating_range_is_checked_against_the_model() -> None:
+    """Bounds name a measurement of the model and have low below high."""
+    model = reference_model()
+    for bad, words in (
+        ({"airspeed_x": [20.0, 30.0]}, "not a measurement"),
+        ({"airspeed": [30.0, 20.0]}, "low must be below high"),
+    ):
+        with pytest.raises(ConfigError, match=words):
+            stmmae.parse_config({"model": {**model, "operating_range": bad}})
+    config = stmmae.parse_config({})
+    assert config.model.operating_range == {"airspeed": (21.0, 29.0)}
+
+
+def test_no_fault_is_detected_outside_the_operating_range() -> None:
+    """A flight at 31 m/s under the model of 25 m/s (range 21-29 m/s): the stuck aileron is not
+    detected, the status says why ('unknown', the smoothed airspeed and the range) and the health
+    windows count the samples outside; without the range the same data raise detections. Back
+    inside the range (the same fault at 25 m/s), it is detected."""
+    fault = (SurfaceFault("aileron_right", 20.0, 40.0, "stuck", position_deg=8.0),)
+    t, ch, _ = simulate_flight(40.0, faults=fault, seed=3, airspeed_m_s=31.0)
+    batch = Batch(t_s=t, channels=ch)
+    config = stmmae.parse_config({"health_window_samples": 1000})
+    state, out = stmmae.step(config, stmmae.initial_state(config), batch)
+    assert [e for e in out.events if e.kind == "fault_detected"] == []
+    assert out.status is not None and out.status.status == "unknown"
+    assert "airspeed 3" in out.status.reasons[0] and "21 to 29" in out.status.reasons[0]
+    assert out.health[-1].status == "unknown"
+    assert out.health[-1].indicators["outside_operating_range_fraction"] == 1.0
+    assert out.diagnosis is not None and out.diagnosis.detail["outside_operating_range"]
+    unbounded = {**reference_model(), "operating_range": {}}
+    config_off = stmmae.parse_config({"health_window_samples": 1000, "model": unbounded})
+    _, out_off = stmmae.step(config_off, stmmae.initial_state(config_off), batch)
+    assert [e for e in out_off.events if e.kind == "fault_detected"]
+    t, ch, _ = simulate_flight(40.0, faults=fault, seed=3, airspeed_m_s=25.0)
+    _, out_in = stmmae.step(config, stmmae.initial_state(config), Batch(t_s=t, channels=ch))
+    assert any(
+        "aileron_right" in e.detail["candidates"] and e.t_s >= 20.0
+        for e in out_in.events
+        if e.kind == "fault_detected"
+    )
+    assert out_in.health[0].indicators["outside_operating_range_fraction"] == 0.0
 
 
 # ----------------------------------------------------------------------------- reproducibility
