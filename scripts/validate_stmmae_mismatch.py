@@ -28,15 +28,13 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from validate_stmmae_random import GRACE_S, simulate  # noqa: E402
+from validate_stmmae_random import GRACE_S, simulate, write_section  # noqa: E402
 
 from estimators import stmmae  # noqa: E402
 from estimators.base import Batch  # noqa: E402
 from estimators.models.small_uav import reference_model  # noqa: E402
 from estimators.simulators.uav_scenarios import random_scenario  # noqa: E402
 
-ROOT = Path(__file__).resolve().parent.parent
-DOC = ROOT / "docs" / "validation.md"
 BEGIN, END = "<!-- stmmae-mismatch:begin -->", "<!-- stmmae-mismatch:end -->"
 # the untouched (31000+, 33000+) and fresh (181000+, 183000+) sets of validate_stmmae_random.py
 SETS = ((31000, 33000), (181000, 183000))
@@ -162,16 +160,7 @@ def main() -> int:
     print(section)
     if args.no_write:
         return 0
-    text = DOC.read_text(encoding="utf-8")
-    if BEGIN in text and END in text:
-        head, rest = text.split(BEGIN, 1)
-        _, tail = rest.split(END, 1)
-        text = head + section + tail
-    else:
-        marker = "<!-- stmmae-random:end -->"
-        text = text.replace(marker, marker + "\n\n" + section, 1)
-    DOC.write_text(text, encoding="utf-8")
-    print(f"wrote {DOC}")
+    write_section(section, BEGIN, END, after="<!-- stmmae-random:end -->")
     return 0
 
 

@@ -276,6 +276,23 @@ def run_flight(
 
 
 # ----------------------------------------------------------------------------- report
+def write_section(section: str, begin: str, end: str, after: str) -> None:
+    """Put ``section`` (which starts with ``begin`` and ends with ``end``) into
+    ``docs/validation.md``: in place of the text between the two markers, else after the marker
+    ``after``, else at the end."""
+    text = DOC.read_text(encoding="utf-8")
+    if begin in text and end in text:
+        head, rest = text.split(begin, 1)
+        _, tail = rest.split(end, 1)
+        text = head + section + tail
+    elif after in text:
+        text = text.replace(after, after + "\n\n" + section, 1)
+    else:
+        text = text.rstrip("\n") + "\n\n" + section + "\n"
+    DOC.write_text(text, encoding="utf-8")
+    print(f"wrote {DOC}")
+
+
 def _q(values: list[float], q: float) -> float:
     return float(np.percentile(values, q)) if values else float("nan")
 
@@ -594,20 +611,7 @@ def main() -> int:
     print(section)
     if args.quick or args.no_write:
         return 0
-    text = DOC.read_text(encoding="utf-8")
-    if BEGIN in text and END in text:
-        head, rest = text.split(BEGIN, 1)
-        _, tail = rest.split(END, 1)
-        text = head + section + tail
-    else:
-        anchor = "<!-- stmmae:end -->"
-        text = (
-            text.replace(anchor, anchor + "\n\n" + section, 1)
-            if anchor in text
-            else text.rstrip("\n") + "\n\n" + section + "\n"
-        )
-    DOC.write_text(text, encoding="utf-8")
-    print(f"wrote {DOC}")
+    write_section(section, BEGIN, END, after="<!-- stmmae:end -->")
     return 0
 
 
