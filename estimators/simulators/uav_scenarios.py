@@ -63,8 +63,11 @@ class FlightScenario:
     faults: tuple[SurfaceFault, ...]
     manoeuvres: tuple[Manoeuvre, ...]
 
-    def simulate(self) -> tuple[FloatArray, dict[str, FloatArray], FlightTruth]:
-        """Fly it (``uav_closed_loop.simulate_flight``)."""
+    def simulate(
+        self, noise_scale: float = 1.0
+    ) -> tuple[FloatArray, dict[str, FloatArray], FlightTruth]:
+        """Fly it (``uav_closed_loop.simulate_flight``; ``noise_scale`` multiplies the sensor
+        noise standard deviations)."""
         return simulate_flight(
             self.duration_s,
             sample_rate_hz=self.sample_rate_hz,
@@ -72,6 +75,7 @@ class FlightScenario:
             seed=self.seed,
             airspeed_m_s=self.airspeed_m_s,
             manoeuvres=self.manoeuvres,
+            noise_scale=noise_scale,
         )
 
 
