@@ -380,6 +380,15 @@ class StmmaeConfig(EstimatorConfigModel):
         "halves' filters absorbing the error alike); a half is still detected by its own "
         "conditions",
     )
+    noise_ratio_unknown: Number = Field(
+        2.0,
+        gt=1.0,
+        le=1e6,
+        description="'unknown' level of innovation_noise_ratio, the no-fault filter's innovation "
+        "energy in units of the model's sensor noise R averaged over a health window (about 1 "
+        "when R is the sensors' noise): above it the sensors are noisier than the model says, "
+        "or the model does not fit, and faults may go undetected",
+    )
     operating_range_smoothing_s: Number = Field(
         10.0,
         gt=0.0,
@@ -786,6 +795,10 @@ class StateParts:
             a first value, and for measurements without bounds; version 6).
         outside_samples: FloatArray  # (1,) samples outside the operating range in the open
             health window (version 6).
+        noise_sums: FloatArray  # (2,) sum and count of the no-fault filter's innovation energy
+            in units of the model's R over the open health window (version 6).
+        noise_smoothed: FloatArray  # (1,) that energy smoothed over operating_range_smoothing_s
+            (NaN before a first value; version 6).
     """
 
     samples_seen: float
@@ -804,6 +817,8 @@ class StateParts:
     groups: FloatArray
     operating: FloatArray
     outside_samples: FloatArray
+    noise_sums: FloatArray
+    noise_smoothed: FloatArray
 
 
 def layout(config: StmmaeConfig) -> kern.Layout:
@@ -845,7 +860,9 @@ def state_parts(config: StmmaeConfig, state: StmmaeState) -> StateParts:
         applied=vec[lay.applied : lay.applied + m],
         groups=vec[lay.groups : lay.operating].reshape(lay.s, kern.G_LEN),
         operating=vec[lay.operating : lay.operating + p],
-        outside_samples=vec[lay.operating + p : lay.length],
+        outside_samples=vec[lay.operating + p : lay.operating + p + 1],
+        noise_sums=vec[lay.operating + p + 1 : lay.operating + p + 3],
+        noise_smoothed=vec[lay.operating + p + 3 : lay.length],
     )
 
 
@@ -875,6 +892,7 @@ def initial_state(config: StmmaeConfig) -> StmmaeState:
         for idx in kern.G_TIMES:
             vec[g + idx] = np.nan
     vec[lay.operating : lay.operating + lay.p] = np.nan
+    vec[lay.length - 1] = np.nan  # the smoothed innovation energy
     vec.setflags(write=False)
     return StmmaeState(version=STATE_VERSION, t_last_s=-math.inf, vector=vec)
 
@@ -1245,16 +1263,32 @@ def outside_operating_range(config: StmmaeConfig, state: StmmaeState) -> list[st
     return reasons
 
 
+def _noise_reason(ratio: float, config: StmmaeConfig) -> str:
+    return (
+        f"innovations average {ratio:.3g} times the model's sensor noise R (unknown above "
+        f"{config.noise_ratio_unknown:g}): the sensors are noisier than the model says, or the "
+        "model does not fit; faults may go undetected"
+    )
+
+
+def _noise_reasons(config: StmmaeConfig, state: StmmaeState) -> list[str]:
+    """The reason when the innovation energy, smoothed over ``operating_range_smoothing_s``, is
+    above ``noise_ratio_unknown``; else none."""
+    ratio = float(state_parts(config, state).noise_smoothed[0])
+    return [_noise_reason(ratio, config)] if ratio > config.noise_ratio_unknown else []
+
+
 def status_report(config: StmmaeConfig, state: StmmaeState) -> StatusReport:
     """ "alert" while a fault is active; "unknown" while a measurement is outside the model's
-    operating range (no new fault is detected there); "watch" while a surface's fault
+    operating range (no new fault is detected there) or the innovations, smoothed, are above
+    ``noise_ratio_unknown`` times the model's sensor noise; "watch" while a surface's fault
     probability is above ``watch_probability`` without being confirmed; else "ok"."""
     faults = active_faults(config, state)
-    outside = outside_operating_range(config, state)
+    unknown = outside_operating_range(config, state) + _noise_reasons(config, state)
     if faults:
-        return StatusReport("alert", tuple(_fault_reason(f) for f in faults) + tuple(outside))
-    if outside:
-        return StatusReport("unknown", tuple(outside))
+        return StatusReport("alert", tuple(_fault_reason(f) for f in faults) + tuple(unknown))
+    if unknown:
+        return StatusReport("unknown", tuple(unknown))
     watch = [
         f"{s} fault probability {p:.2f} above {config.watch_probability:g}, not confirmed"
         for s, p in surface_probabilities(config, state).items()
@@ -1291,6 +1325,7 @@ def _health(row: FloatArray, config: StmmaeConfig) -> HealthWindow:
         "active_fault_fraction": _finite(row[kern.WIN_ACTIVE_FRACTION]),
         "covariance_failures": _finite(row[kern.WIN_COV_FAIL]),
         "outside_operating_range_fraction": _finite(row[kern.WIN_OUTSIDE_FRACTION]),
+        "innovation_noise_ratio": _finite(row[kern.WIN_NOISE_RATIO]),
     }
     reasons: list[str] = []
     status: Status = "ok"
@@ -1309,6 +1344,11 @@ def _health(row: FloatArray, config: StmmaeConfig) -> HealthWindow:
     if nis is not None and nis > config.nis_watch and status == "ok":
         status = "watch"
         reasons.append(f"nis_nominal_mean {nis:.3g} > nis_watch {config.nis_watch:g}")
+    ratio = indicators["innovation_noise_ratio"]
+    if ratio is not None and ratio > config.noise_ratio_unknown:
+        if status != "alert":
+            status = "unknown"
+        reasons.append(_noise_reason(ratio, config))
     outside = indicators["outside_operating_range_fraction"] or 0.0
     if outside > 0.0:
         if status != "alert":
@@ -1373,7 +1413,8 @@ def step(config: StmmaeConfig, state: StmmaeState, batch: Batch) -> tuple[Stmmae
     if batch.end_of_run and wacc[kern.W_COUNT] > 0.0:
         # the run is closed: its partial health window is scored now
         row = np.empty((1, kern.WIN_LEN))
-        kern._close_window(wacc, vec[lay.operating + lay.p : lay.length], float(t[n - 1]), row[0])
+        extra = vec[lay.operating + lay.p : lay.operating + lay.p + 3]
+        kern._close_window(wacc, extra, float(t[n - 1]), row[0])
         windows = np.concatenate([windows, row])
     vec.setflags(write=False)
     new_state = StmmaeState(version=STATE_VERSION, t_last_s=float(t[n - 1]), vector=vec)

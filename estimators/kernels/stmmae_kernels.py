@@ -163,7 +163,8 @@ WIN_NIS_MEAN = 6  # mean of NIS / (number of measurements used), no-fault filter
 WIN_ACTIVE_FRACTION = 7
 WIN_COV_FAIL = 8
 WIN_OUTSIDE_FRACTION = 9  # share of the samples with the smoothed measurements outside the range
-WIN_LEN = 10
+WIN_NOISE_RATIO = 10  # mean of the no-fault filter's innovation energy in units of the model's R
+WIN_LEN = 11
 
 # event rows
 EV_T = 0
@@ -269,7 +270,9 @@ class Layout(NamedTuple):
     applied: int  # (m,) the inputs applied over the step into the next sample (servo model)
     groups: int  # (s, G_LEN) group decision fields (twin halves detected together)
     operating: int  # (p,) smoothed measurements of the operating range, then (1,) the count of
-    # samples outside it in the open health window
+    # samples outside it in the open health window, then (2,) the sum and count of the no-fault
+    # filter's innovation energy in units of R over the open window, then (1,) that energy
+    # smoothed like the operating range's measurements (NaN before a first value)
     length: int
 
 
@@ -299,7 +302,7 @@ def state_layout(nh: int, na: int, p: int, m: int, s: int) -> Layout:
         applied,
         applied + m,
         applied + m + s * G_LEN,
-        applied + m + s * G_LEN + p + 1,
+        applied + m + s * G_LEN + p + 4,
     )
 
 
@@ -1274,9 +1277,10 @@ def reset_after_clearance(dec: FloatArray, h: int) -> None:
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _close_window(wacc: FloatArray, n_out: FloatArray, t_end: float, row: FloatArray) -> None:
-    """Write the health window's row from its accumulators ``wacc`` and ``n_out`` (the count
-    of samples outside the operating range), then reset them."""
+def _close_window(wacc: FloatArray, extra: FloatArray, t_end: float, row: FloatArray) -> None:
+    """Write the health window's row from its accumulators ``wacc`` and ``extra`` (the count of
+    samples outside the operating range; the sum and count of the no-fault filter's innovation
+    energy in units of R), then reset them."""
     row[:] = np.nan
     n = wacc[W_COUNT]
     row[WIN_T0] = wacc[W_T0]
@@ -1289,9 +1293,11 @@ def _close_window(wacc: FloatArray, n_out: FloatArray, t_end: float, row: FloatA
         row[WIN_NIS_MEAN] = wacc[W_SUM_NIS] / wacc[W_N_NIS]
     row[WIN_ACTIVE_FRACTION] = wacc[W_N_ACTIVE] / n
     row[WIN_COV_FAIL] = wacc[W_COV_FAIL]
-    row[WIN_OUTSIDE_FRACTION] = n_out[0] / n
+    row[WIN_OUTSIDE_FRACTION] = extra[0] / n
+    if extra[2] > 0.0:
+        row[WIN_NOISE_RATIO] = extra[1] / extra[2]
     wacc[:] = 0.0
-    n_out[0] = 0.0
+    extra[:] = 0.0
 
 
 def bank_batch(
@@ -1420,7 +1426,8 @@ def _bank_kernel(
     gdec = st[lay_groups : lay_groups + ns * G_LEN].copy().reshape((ns, G_LEN))
     lay_op = lay_groups + ns * G_LEN
     ysm = st[lay_op : lay_op + p]  # smoothed measurements of the operating range (views)
-    n_out = st[lay_op + p : lay_op + p + 1]
+    extra = st[lay_op + p : lay_op + p + 3]  # window: samples outside; innovation energy sum, n
+    noise_sm = st[lay_op + p + 3 : lay_op + p + 4]  # the innovation energy, smoothed
     groups_on = cfg[CFG_GROUP] != 0.0
     twin_of = np.full(ns, -1, dtype=np.int64)
     unit_q = np.empty(ns)
@@ -1525,6 +1532,18 @@ def _bank_kernel(
             ll[f] = out2[0] if not math.isnan(out2[0]) else -np.inf
             if f == 0:
                 nis0 = out2[1] / nv if nv > 0 else np.nan
+                if nv > 0:
+                    # innovation energy in units of the model's sensor noise (work[1]: gamma)
+                    e2 = 0.0
+                    for a in range(nv):
+                        e2 += work[1, a] * work[1, a] * bank.euclid_weights[valid[a]]
+                    extra[1] += e2 / nv
+                    extra[2] += 1.0
+                    if math.isnan(noise_sm[0]) or st[ST_N_SEEN] == 0.0:
+                        noise_sm[0] = e2 / nv
+                    else:
+                        a_n = 1.0 - math.exp(-(tk - st[ST_T_PREV]) / cfg[CFG_RANGE_SMOOTH_S])
+                        noise_sm[0] += a_n * (e2 / nv - noise_sm[0])
         st[ST_COV_FAIL] += fails
         if nv > 0:
             _bayes(probs, ll, bank.floors)
@@ -1731,10 +1750,10 @@ def _bank_kernel(
         if any_active:
             wacc[W_N_ACTIVE] += 1.0
         if outside:
-            n_out[0] += 1.0
+            extra[0] += 1.0
         wacc[W_COV_FAIL] += fails
         if wacc[W_COUNT] >= hw:
-            _close_window(wacc, n_out, tk, windows[n_win])
+            _close_window(wacc, extra, tk, windows[n_win])
             n_win += 1
         # servo model: a healthy surface follows its command through a first-order lag; the
         # other inputs (throttle) act as commanded, one step later

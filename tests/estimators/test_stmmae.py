@@ -1500,6 +1500,28 @@ def test_no_fault_is_detected_outside_the_operating_range() -> None:
     assert out_in.health[0].indicators["outside_operating_range_fraction"] == 0.0
 
 
+def test_sensors_noisier_than_the_model_make_the_status_unknown() -> None:
+    """Sensor noise twice the model's: the no-fault filter's innovations average several times
+    the model's R over each health window (about 1 with the model's noise), and the windows and
+    the status say "unknown" with that reason instead of "ok"."""
+    config = stmmae.parse_config({"health_window_samples": 1000})
+    for scale in (1.0, 2.0):
+        t, ch, _ = simulate_flight(30.0, faults=(), seed=4, noise_scale=scale)
+        _, out = stmmae.step(config, stmmae.initial_state(config), Batch(t_s=t, channels=ch))
+        ratios = [w.indicators["innovation_noise_ratio"] for w in out.health]
+        assert out.status is not None and len(ratios) == 3
+        if scale == 1.0:
+            assert max(ratios) < 1.3
+            assert {w.status for w in out.health} <= {"ok", "watch"}
+            assert out.status.status in ("ok", "watch")
+        else:
+            assert min(ratios) > config.noise_ratio_unknown
+            assert {w.status for w in out.health} == {"unknown"}
+            assert "times the model's sensor noise" in out.health[-1].reasons[0]
+            assert out.status.status == "unknown"
+            assert "times the model's sensor noise" in out.status.reasons[0]
+
+
 # ----------------------------------------------------------------------------- reproducibility
 _RUN_FLIGHT = """
 import sys
