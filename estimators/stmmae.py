@@ -843,6 +843,7 @@ def state_parts(config: StmmaeConfig, state: StmmaeState) -> StateParts:
         )
     nh, na, p, m = lay.nh, lay.na, lay.p, lay.m
     blocks = vec[lay.filt : lay.filt + nh * lay.filt_len].reshape(nh, lay.filt_len)
+    checks = vec[lay.operating + p : lay.length]
     v_off = na + na * na
     return StateParts(
         samples_seen=float(vec[kern.ST_N_SEEN]),
@@ -860,9 +861,9 @@ def state_parts(config: StmmaeConfig, state: StmmaeState) -> StateParts:
         applied=vec[lay.applied : lay.applied + m],
         groups=vec[lay.groups : lay.operating].reshape(lay.s, kern.G_LEN),
         operating=vec[lay.operating : lay.operating + p],
-        outside_samples=vec[lay.operating + p : lay.operating + p + 1],
-        noise_sums=vec[lay.operating + p + 1 : lay.operating + p + 3],
-        noise_smoothed=vec[lay.operating + p + 3 : lay.length],
+        outside_samples=checks[kern.CK_OUTSIDE : kern.CK_OUTSIDE + 1],
+        noise_sums=checks[kern.CK_NOISE_SUM : kern.CK_NOISE_N + 1],
+        noise_smoothed=checks[kern.CK_NOISE_SMOOTH : kern.CK_NOISE_SMOOTH + 1],
     )
 
 
@@ -892,7 +893,7 @@ def initial_state(config: StmmaeConfig) -> StmmaeState:
         for idx in kern.G_TIMES:
             vec[g + idx] = np.nan
     vec[lay.operating : lay.operating + lay.p] = np.nan
-    vec[lay.length - 1] = np.nan  # the smoothed innovation energy
+    vec[lay.operating + lay.p + kern.CK_NOISE_SMOOTH] = np.nan
     vec.setflags(write=False)
     return StmmaeState(version=STATE_VERSION, t_last_s=-math.inf, vector=vec)
 
@@ -1413,8 +1414,7 @@ def step(config: StmmaeConfig, state: StmmaeState, batch: Batch) -> tuple[Stmmae
     if batch.end_of_run and wacc[kern.W_COUNT] > 0.0:
         # the run is closed: its partial health window is scored now
         row = np.empty((1, kern.WIN_LEN))
-        extra = vec[lay.operating + lay.p : lay.operating + lay.p + 3]
-        kern._close_window(wacc, extra, float(t[n - 1]), row[0])
+        kern._close_window(wacc, vec[lay.operating + lay.p : lay.length], float(t[n - 1]), row[0])
         windows = np.concatenate([windows, row])
     vec.setflags(write=False)
     new_state = StmmaeState(version=STATE_VERSION, t_last_s=float(t[n - 1]), vector=vec)

@@ -166,6 +166,13 @@ WIN_OUTSIDE_FRACTION = 9  # share of the samples with the smoothed measurements 
 WIN_NOISE_RATIO = 10  # mean of the no-fault filter's innovation energy in units of the model's R
 WIN_LEN = 11
 
+# status checks, after the (p,) smoothed measurements of the operating range
+CK_OUTSIDE = 0  # samples outside the operating range in the open health window
+CK_NOISE_SUM = 1  # sum of the no-fault filter's innovation energy (units of R) in that window
+CK_NOISE_N = 2  # its count
+CK_NOISE_SMOOTH = 3  # the innovation energy smoothed over CFG_RANGE_SMOOTH_S (NaN: none yet)
+CK_LEN = 4
+
 # event rows
 EV_T = 0
 EV_KIND = 1  # EV_DETECTED or EV_CLEARED
@@ -269,10 +276,8 @@ class Layout(NamedTuple):
     window: int
     applied: int  # (m,) the inputs applied over the step into the next sample (servo model)
     groups: int  # (s, G_LEN) group decision fields (twin halves detected together)
-    operating: int  # (p,) smoothed measurements of the operating range, then (1,) the count of
-    # samples outside it in the open health window, then (2,) the sum and count of the no-fault
-    # filter's innovation energy in units of R over the open window, then (1,) that energy
-    # smoothed like the operating range's measurements (NaN before a first value)
+    operating: int  # (p,) smoothed measurements of the operating range, then (CK_LEN,) the
+    # status checks (``CK_*``)
     length: int
 
 
@@ -302,7 +307,7 @@ def state_layout(nh: int, na: int, p: int, m: int, s: int) -> Layout:
         applied,
         applied + m,
         applied + m + s * G_LEN,
-        applied + m + s * G_LEN + p + 4,
+        applied + m + s * G_LEN + p + CK_LEN,
     )
 
 
@@ -1153,6 +1158,32 @@ def _outside_range(bank: BankArrays, ysm: FloatArray, y_k: FloatArray, a_range: 
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _innovation_energy(gam: FloatArray, valid: IntArray, nv: int, weights: FloatArray) -> float:
+    """``sum_a gamma_a^2 / R_aa / nv`` over the ``nv`` valid measurements (``weights``: 1 / R_aa):
+    about 1 when R is the sensors' noise; NaN without a measurement."""
+    if nv == 0:
+        return np.nan
+    e2 = 0.0
+    for a in range(nv):
+        e2 += gam[a] * gam[a] * weights[valid[a]]
+    return e2 / nv
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _add_noise(checks: FloatArray, energy: float, a_range: float) -> None:
+    """Add one sample's innovation energy to the window sums and the smoothed value (the first
+    value starts it; share ``a_range`` of the gap per sample after that)."""
+    if not math.isfinite(energy):
+        return
+    checks[CK_NOISE_SUM] += energy
+    checks[CK_NOISE_N] += 1.0
+    if math.isnan(checks[CK_NOISE_SMOOTH]):
+        checks[CK_NOISE_SMOOTH] = energy
+    else:
+        checks[CK_NOISE_SMOOTH] += a_range * (energy - checks[CK_NOISE_SMOOTH])
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def reset_group(gdec: FloatArray, h: int) -> None:
     """The group of ``h`` back to "not detected" after its clearance (or isolation) event."""
     gdec[h, G_ACTIVE] = 0.0
@@ -1277,10 +1308,9 @@ def reset_after_clearance(dec: FloatArray, h: int) -> None:
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _close_window(wacc: FloatArray, extra: FloatArray, t_end: float, row: FloatArray) -> None:
-    """Write the health window's row from its accumulators ``wacc`` and ``extra`` (the count of
-    samples outside the operating range; the sum and count of the no-fault filter's innovation
-    energy in units of R), then reset them."""
+def _close_window(wacc: FloatArray, checks: FloatArray, t_end: float, row: FloatArray) -> None:
+    """Write the health window's row from its accumulators ``wacc`` and the window fields of
+    ``checks`` (``CK_*``), then reset them."""
     row[:] = np.nan
     n = wacc[W_COUNT]
     row[WIN_T0] = wacc[W_T0]
@@ -1293,11 +1323,13 @@ def _close_window(wacc: FloatArray, extra: FloatArray, t_end: float, row: FloatA
         row[WIN_NIS_MEAN] = wacc[W_SUM_NIS] / wacc[W_N_NIS]
     row[WIN_ACTIVE_FRACTION] = wacc[W_N_ACTIVE] / n
     row[WIN_COV_FAIL] = wacc[W_COV_FAIL]
-    row[WIN_OUTSIDE_FRACTION] = extra[0] / n
-    if extra[2] > 0.0:
-        row[WIN_NOISE_RATIO] = extra[1] / extra[2]
+    row[WIN_OUTSIDE_FRACTION] = checks[CK_OUTSIDE] / n
+    if checks[CK_NOISE_N] > 0.0:
+        row[WIN_NOISE_RATIO] = checks[CK_NOISE_SUM] / checks[CK_NOISE_N]
     wacc[:] = 0.0
-    extra[:] = 0.0
+    checks[CK_OUTSIDE] = 0.0
+    checks[CK_NOISE_SUM] = 0.0
+    checks[CK_NOISE_N] = 0.0
 
 
 def bank_batch(
@@ -1426,8 +1458,8 @@ def _bank_kernel(
     gdec = st[lay_groups : lay_groups + ns * G_LEN].copy().reshape((ns, G_LEN))
     lay_op = lay_groups + ns * G_LEN
     ysm = st[lay_op : lay_op + p]  # smoothed measurements of the operating range (views)
-    extra = st[lay_op + p : lay_op + p + 3]  # window: samples outside; innovation energy sum, n
-    noise_sm = st[lay_op + p + 3 : lay_op + p + 4]  # the innovation energy, smoothed
+    checks = st[lay_op + p : lay_op + p + CK_LEN]  # status checks (``CK_*``)
+    noise0 = np.nan
     groups_on = cfg[CFG_GROUP] != 0.0
     twin_of = np.full(ns, -1, dtype=np.int64)
     unit_q = np.empty(ns)
@@ -1532,18 +1564,7 @@ def _bank_kernel(
             ll[f] = out2[0] if not math.isnan(out2[0]) else -np.inf
             if f == 0:
                 nis0 = out2[1] / nv if nv > 0 else np.nan
-                if nv > 0:
-                    # innovation energy in units of the model's sensor noise (work[1]: gamma)
-                    e2 = 0.0
-                    for a in range(nv):
-                        e2 += work[1, a] * work[1, a] * bank.euclid_weights[valid[a]]
-                    extra[1] += e2 / nv
-                    extra[2] += 1.0
-                    if math.isnan(noise_sm[0]) or st[ST_N_SEEN] == 0.0:
-                        noise_sm[0] = e2 / nv
-                    else:
-                        a_n = 1.0 - math.exp(-(tk - st[ST_T_PREV]) / cfg[CFG_RANGE_SMOOTH_S])
-                        noise_sm[0] += a_n * (e2 / nv - noise_sm[0])
+                noise0 = _innovation_energy(work[1], valid, nv, bank.euclid_weights)
         st[ST_COV_FAIL] += fails
         if nv > 0:
             _bayes(probs, ll, bank.floors)
@@ -1562,7 +1583,9 @@ def _bank_kernel(
         a_smooth = 1.0 - math.exp(-dt / cfg[CFG_SMOOTH_S])
         # operating range: outside while a bounded measurement, smoothed, is beyond its bounds;
         # no new detection is made there (the model does not hold)
-        outside = _outside_range(bank, ysm, y[:, k], 1.0 - math.exp(-dt / cfg[CFG_RANGE_SMOOTH_S]))
+        a_range = 1.0 - math.exp(-dt / cfg[CFG_RANGE_SMOOTH_S])
+        outside = _outside_range(bank, ysm, y[:, k], a_range)
+        _add_noise(checks, noise0, a_range)
         a_clear = 1.0 - math.exp(-dt / cfg[CFG_CLEAR_SMOOTH_S])
         any_active = False
         max_fault = -1.0
@@ -1750,10 +1773,10 @@ def _bank_kernel(
         if any_active:
             wacc[W_N_ACTIVE] += 1.0
         if outside:
-            extra[0] += 1.0
+            checks[CK_OUTSIDE] += 1.0
         wacc[W_COV_FAIL] += fails
         if wacc[W_COUNT] >= hw:
-            _close_window(wacc, extra, tk, windows[n_win])
+            _close_window(wacc, checks, tk, windows[n_win])
             n_win += 1
         # servo model: a healthy surface follows its command through a first-order lag; the
         # other inputs (throttle) act as commanded, one step later
