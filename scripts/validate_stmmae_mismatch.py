@@ -13,7 +13,7 @@ for single faults how many were detected (a detection covering the surface durin
 and how many of the others fell in flights outside the range.
 
 Run: ``.venv/bin/python scripts/validate_stmmae_mismatch.py --cache DIR`` (defaults: the
-untouched and fresh seed sets, 60 fault-free and 80 single-fault flights; about 15 min on two
+untouched and fresh seed sets, 60 fault-free and 80 single-fault flights; about 6 min on two
 shared cores). ``--no-write`` prints only.
 """
 

@@ -10,7 +10,7 @@ the median delay, stuck faults detected, detections outside the faults (5 s grac
 single-fault flights, and detections in the fault-free flights.
 
 Run: ``.venv/bin/python scripts/validate_stmmae_noise.py`` (20 single-fault flights, seeds
-191000+, and 6 fault-free flights of 600 s, seeds 193000+, per setting; about 10 min on two
+191000+, and 6 fault-free flights of 600 s, seeds 193000+, per setting; about 2 min on two
 shared cores). ``--no-write`` prints only.
 """
 
