@@ -111,6 +111,9 @@ LOAD_CHUNK = 32
 # inside the write lock in one transaction when no other writer holds or waits for it.
 IN_LOCK_MAX_SAMPLES = 64
 IN_LOCK_MAX_STREAMS = 8
+# PostgreSQL: a group whose applies so far average at least this many samples per stream is
+# bounded by PROCESSOR_COMPUTE_BUDGET_S instead of PROCESSOR_TXN_BUDGET_S (Processor._bound_s).
+LARGE_APPLY_SAMPLES = 1000
 # Per-sample output retention runs at most this often (it scans the table).
 SAMPLE_OUTPUT_PRUNE_EVERY_S = 60.0
 
@@ -438,6 +441,18 @@ class Processor:
         # transaction holds the database's write lock (SQLite) or the streams' locks (PostgreSQL).
         return budget <= 0 or (i > 0 and time.perf_counter() - t0 > seconds)
 
+    def _bound_s(self, prepared: list[service.PreparedApply]) -> float:
+        """How long a transaction that holds its streams (PostgreSQL's row locks; SQLite's write
+        lock for its small in-lock applies) may run before no further stream joins it: the
+        short ``processor_txn_budget_s``, unless the group's applies so far average
+        ``LARGE_APPLY_SAMPLES`` samples or more per stream; then ``processor_compute_budget_s``.
+        A large apply alone outlasts the short bound, so under it every group held one stream
+        and paid the group's fixed cost per stream (docs/benchmarks.md, "Apply groups of large
+        batches"); small applies keep the short bound, as their results wait for the commit."""
+        if prepared and sum(p.result.samples for p in prepared) >= LARGE_APPLY_SAMPLES * len(prepared):
+            return self.settings.processor_compute_budget_s
+        return self.settings.processor_txn_budget_s
+
     def _prepare(
         self, session: Session, pks: list[int], t0: float, errors: list[tuple[int, Exception]], idle: list[int]
     ) -> tuple[list[service.PreparedApply], list[int]]:
@@ -479,7 +494,7 @@ class Processor:
         limits = self._limits()
         loaded = first or service.GroupLoad({}, {}, {})
         for i, pk in enumerate(pks):
-            if self._over(i, t0, budget, self.settings.processor_txn_budget_s):
+            if self._over(i, t0, budget, self._bound_s(prepared)):
                 left = pks[i:]
                 break
             if i or first is None:

@@ -316,6 +316,42 @@ def test_a_group_computed_outside_the_lock_is_bounded_by_the_compute_budget(
     assert statements.count("UPDATE streams") == groups  # one per group
 
 
+@pytest.mark.parametrize(
+    ("samples", "compute_budget_s", "groups"),
+    [(1200, 60.0, 1), (1200, 1e-9, 3), (120, 60.0, 3)],
+)
+def test_a_postgresql_group_of_large_applies_is_bounded_by_the_compute_budget(
+    api_noproc: Api, db_url: str, samples: int, compute_budget_s: float, groups: int
+) -> None:
+    """PostgreSQL: a group whose applies average ``LARGE_APPLY_SAMPLES`` samples or more per
+    stream may run for ``processor_compute_budget_s``; smaller ones keep the transaction's
+    ``processor_txn_budget_s``. With the latter spent at once, three streams of 1,200-sample
+    applies share one group while the compute budget lasts (one each when it does not), and
+    three of 120 samples take one group each whatever the compute budget."""
+    from app.processing.processor import LARGE_APPLY_SAMPLES
+
+    if db_url.startswith("sqlite"):
+        pytest.skip("SQLite bounds its groups computed outside the write lock by the compute budget")
+    assert (samples >= LARGE_APPLY_SAMPLES) == (samples == 1200)
+    acts = ["s0", "s1", "s2"]
+    s = make_series(samples, seed=7)
+    for act in acts:
+        api_noproc.setup_actuator(act=act)
+        r = api_noproc.send_arrow("N1", act, f"{act}-0", s.t_s, {"current": s.current, "voltage": s.voltage},
+                                  wait=0)
+        assert r.status_code == 202, r.text
+    db = Database(db_url)
+    pks = _pks(db)
+    statements = _writes_seen(db)
+    settings = make_settings(db_url, processor_txn_budget_s=1e-9, processor_compute_budget_s=compute_budget_s)
+    assert Processor(db, settings).apply_streams([pks[a] for a in acts]) == 3
+    with db.read() as session:
+        marks = sorted(session.scalars(select(Stream.last_applied_seq)))
+    db.dispose()
+    assert marks == [1, 1, 1]
+    assert statements.count("UPDATE streams") == groups  # one per group
+
+
 def test_a_group_whose_store_fails_is_stored_stream_by_stream(
     api_noproc: Api, db_url: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
