@@ -47,7 +47,7 @@ from app.config import Settings  # noqa: E402
 #: The floor server: a bare ASGI application, run by uvicorn with ``fleethealth serve``'s
 #: WebSocket settings (passed as arguments). It reads no frame: a ``ready`` message on connect,
 #: then per received message the replies, of the sizes the service sends.
-FLOOR_APP = r'''
+FLOOR_APP = r"""
 import sys
 import orjson
 import uvicorn
@@ -91,7 +91,7 @@ s = sys.argv[3:]
 uvicorn.run(app, host="127.0.0.1", port=int(sys.argv[1]), log_level="warning",
             ws_max_size=int(s[0]), ws_ping_interval=float(s[1]), ws_ping_timeout=float(s[2]),
             ws_per_message_deflate=s[3] == "1")
-'''
+"""
 
 
 def _free_port() -> int:
@@ -105,10 +105,16 @@ def floor_server(one_reply: bool, ready_timeout_s: float) -> Iterator[tuple[str,
     """Start the floor server; yield its URL and pid; stop it."""
     st = Settings()
     port = _free_port()
-    args = [str(st.ws_max_frame_bytes), str(st.ws_ping_interval_s), str(st.ws_ping_timeout_s),
-            "1" if st.ws_per_message_deflate else "0"]
-    proc = subprocess.Popen([sys.executable, "-c", FLOOR_APP, str(port), "1" if one_reply else "0",
-                             *args], start_new_session=True)
+    args = [
+        str(st.ws_max_frame_bytes),
+        str(st.ws_ping_interval_s),
+        str(st.ws_ping_timeout_s),
+        "1" if st.ws_per_message_deflate else "0",
+    ]
+    proc = subprocess.Popen(
+        [sys.executable, "-c", FLOOR_APP, str(port), "1" if one_reply else "0", *args],
+        start_new_session=True,
+    )
     try:
         deadline = time.monotonic() + ready_timeout_s
         while True:
@@ -129,11 +135,13 @@ def floor_server(one_reply: bool, ready_timeout_s: float) -> Iterator[tuple[str,
             proc.wait(10)
 
 
-def measure(url: str, key: str, tail: str, pid: int, args: argparse.Namespace,
-            frames: bench_ws.Frames) -> tuple[float, float, float]:
+def measure(
+    url: str, key: str, tail: str, pid: int, args: argparse.Namespace, frames: bench_ws.Frames
+) -> tuple[float, float, float]:
     """frames/s, server CPU ms per frame, client CPU ms per frame."""
     dt, client_cpu, server_cpu = bench_ws.many_connections(
-        url, key, tail, args.connections, frames, args.client_procs, args.window, pid)
+        url, key, tail, args.connections, frames, args.client_procs, args.window, pid
+    )
     nf = args.connections * len(frames)
     return nf / dt, 1e3 * server_cpu / nf, 1e3 * client_cpu / nf
 
@@ -145,28 +153,37 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames-per-stream", type=int, default=20)
     ap.add_argument("--client-procs", type=int, default=2)
     ap.add_argument("--window", type=int, default=4)
-    ap.add_argument("--one-reply", action="store_true",
-                    help="the floor server sends only the result message per frame")
+    ap.add_argument(
+        "--one-reply",
+        action="store_true",
+        help="the floor server sends only the result message per frame",
+    )
     ap.add_argument("--no-service", action="store_true", help="measure the floor server only")
     ap.add_argument("--ready-timeout-s", type=float, default=600.0)
     args = ap.parse_args(argv)
     t, chans = make_stream(10 * args.frames_per_stream, seed=10, t0=0.0)
     frames = frames_of(t, chans, 10)[: args.frames_per_stream]
     rows: dict[str, list[tuple[float, float, float]]] = {"floor": [], "service": []}
-    print(f"{args.connections} connections x {len(frames)} 10-sample frames, {os.cpu_count()} cores",
-          flush=True)
+    print(
+        f"{args.connections} connections x {len(frames)} 10-sample frames, {os.cpu_count()} cores",
+        flush=True,
+    )
     for r in range(args.runs):
         with floor_server(args.one_reply, args.ready_timeout_s) as (url, pid):
             rows["floor"].append(measure(url, "unused", "F", pid, args, frames))
         print(f"  run {r + 1} floor:   {rows['floor'][-1][0]:8,.0f} frames/s", flush=True)
         if args.no_service:
             continue
-        with tempfile.TemporaryDirectory(prefix="fleethealth-ws-floor-") as tmp, running_server(
-            f"sqlite:///{Path(tmp) / 'ws.db'}", Path(tmp), args.ready_timeout_s
-        ) as server:
+        with (
+            tempfile.TemporaryDirectory(prefix="fleethealth-ws-floor-") as tmp,
+            running_server(
+                f"sqlite:///{Path(tmp) / 'ws.db'}", Path(tmp), args.ready_timeout_s
+            ) as server,
+        ):
             bench_ws._setup(server.url, server.api_key, "S", args.connections)
-            rows["service"].append(measure(server.url, server.api_key, "S", server.process.pid, args,
-                                           frames))
+            rows["service"].append(
+                measure(server.url, server.api_key, "S", server.process.pid, args, frames)
+            )
         print(f"  run {r + 1} service: {rows['service'][-1][0]:8,.0f} frames/s", flush=True)
     print("\n| | frames/s | server CPU ms/frame | client CPU ms/frame |")
     print("| --- | --- | --- | --- |")

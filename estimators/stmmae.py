@@ -415,6 +415,24 @@ class StmmaeConfig(EstimatorConfigModel):
         description="swing (2 std of the deflection estimate) an oscillating fault must also "
         "exceed, deg",
     )
+    oscillation_small_swing_deg: Number = Field(
+        3.0,
+        gt=0.0,
+        le=180.0,
+        description="below this swing (2 std of the deflection estimate, deg) an oscillating "
+        "fault needs the deeper lobe oscillation_small_swing_correlation: a stuck surface's "
+        "estimate, kept lively by the fading factors, swings up to about this much from "
+        "estimation noise alone, and the noise's autocorrelation can dip below "
+        "oscillation_correlation",
+    )
+    oscillation_small_swing_correlation: Number = Field(
+        -0.7,
+        gt=-1.0,
+        lt=0.0,
+        description="autocorrelation level an oscillating fault's deflection history must fall "
+        "below when its swing is under oscillation_small_swing_deg (at most "
+        "oscillation_correlation)",
+    )
     min_deflection_error_deg: Number = Field(
         1.0,
         ge=0.0,
@@ -454,6 +472,11 @@ class StmmaeConfig(EstimatorConfigModel):
     def _consistent(self) -> StmmaeConfig:
         if self.clear_probability >= self.detect_probability:
             raise ValueError("clear_probability: must be below detect_probability")
+        if self.oscillation_small_swing_correlation > self.oscillation_correlation:
+            raise ValueError(
+                "oscillation_small_swing_correlation: must be at or below oscillation_correlation "
+                "(the lobe a small swing needs is the deeper one)"
+            )
         s = len(self.model.surfaces)
         pairs = s * (s - 1) // 2 if self.pair_hypotheses else 0
         if 1.0 - s * self.probability_floor - pairs * self.pair_probability_floor <= 0.5:
@@ -586,6 +609,8 @@ def _kernel_vector(config: StmmaeConfig) -> FloatArray:
     cfg[kern.CFG_MIN_LLR] = config.min_log_likelihood_ratio
     cfg[kern.CFG_OSC_CORR] = config.oscillation_correlation
     cfg[kern.CFG_OSC_SWING] = math.radians(config.oscillation_swing_deg)
+    cfg[kern.CFG_OSC_SMALL_SWING] = math.radians(config.oscillation_small_swing_deg)
+    cfg[kern.CFG_OSC_SMALL_CORR] = config.oscillation_small_swing_correlation
     tau = config.servo_time_constant_s
     cfg[kern.CFG_SERVO_A] = 1.0 - math.exp(-config.model.dt_s / tau) if tau > 0.0 else 1.0
     cfg.setflags(write=False)

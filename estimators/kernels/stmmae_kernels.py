@@ -78,7 +78,9 @@ CFG_GROUP_ISO = 27  # isolation odds a half needs while its group is detected
 CFG_GROUP_HOLD_S = 28  # detection hold time of a group
 CFG_GROUP_WINDOW_S = 29  # a group is detected only this long after its onset
 CFG_RANGE_SMOOTH_S = 30  # time constant of the measurements smoothed for the operating range
-CFG_LEN = 31
+CFG_OSC_SMALL_SWING = 31  # swing (rad) below which an oscillation needs the deeper lobe
+CFG_OSC_SMALL_CORR = 32  # autocorrelation level of that deeper lobe
+CFG_LEN = 33
 COLLINEAR_STEPS = 20  # model steps over which a deflection's effect on the measurements is taken
 
 KIND_BLOCK_S = 0.05  # the kind test reads the deflection estimate as means over 0.05 s blocks
@@ -801,9 +803,20 @@ def kind_correlation(x: FloatArray, nb: int) -> float:
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def is_oscillating(cfg: FloatArray, corr: float, swing: float) -> bool:
+    """The kind test on a closed span: a negative lobe of the block history's autocorrelation
+    ``corr`` (:func:`kind_correlation`) below ``CFG_OSC_CORR`` and a swing (2 std, rad) above
+    ``CFG_OSC_SWING``; a swing below ``CFG_OSC_SMALL_SWING``, as small as a stuck surface's
+    estimation noise makes, needs the deeper lobe ``CFG_OSC_SMALL_CORR``."""
+    if math.isnan(corr) or not swing > cfg[CFG_OSC_SWING]:
+        return False
+    level = cfg[CFG_OSC_CORR] if swing >= cfg[CFG_OSC_SMALL_SWING] else cfg[CFG_OSC_SMALL_CORR]
+    return bool(corr < level)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def _judge_kind(cfg: FloatArray, dec: FloatArray, kbuf: FloatArray, h: int) -> None:
-    """Close the kind span: oscillating when the block history's autocorrelation has a negative
-    lobe below ``CFG_OSC_CORR`` and its swing exceeds ``CFG_OSC_SWING``; stuck otherwise; left
+    """Close the kind span: oscillating when :func:`is_oscillating`; stuck otherwise; left
     pending (undetermined) when the history is shorter than ``KIND_MIN_BLOCKS``."""
     cur = int(dec[h, D_BLK_IDX])
     nb = cur
@@ -817,7 +830,7 @@ def _judge_kind(cfg: FloatArray, dec: FloatArray, kbuf: FloatArray, h: int) -> N
         if nb >= KIND_MIN_BLOCKS:  # a flat history: constant deflection
             dec[h, D_KIND] = KIND_STUCK
         return
-    osc = corr < cfg[CFG_OSC_CORR] and episode_swing(dec, h) > cfg[CFG_OSC_SWING]
+    osc = is_oscillating(cfg, corr, episode_swing(dec, h))
     dec[h, D_KIND] = KIND_OSCILLATING if osc else KIND_STUCK
 
 
@@ -855,7 +868,7 @@ def cut_kind_span(cfg: FloatArray, dec: FloatArray, kbuf: FloatArray, h: int, t_
     mean = s1 / nb
     swing = 2.0 * math.sqrt(max(s2 / nb - mean * mean, 0.0))
     corr = kind_correlation(kbuf[h], nb)
-    osc = (not math.isnan(corr)) and corr < cfg[CFG_OSC_CORR] and swing > cfg[CFG_OSC_SWING]
+    osc = is_oscillating(cfg, corr, swing)
     if not osc and nb * KIND_BLOCK_S < 0.5 * cfg[CFG_KIND_WINDOW_S]:
         return False
     dec[h, D_EP_N] = float(nb)

@@ -887,6 +887,34 @@ def test_kind_correlation_separates_oscillation_from_noise_and_drift() -> None:
     assert math.isnan(kern.kind_correlation(t, kern.KIND_MIN_BLOCKS - 1))  # too short
 
 
+def test_a_small_swing_needs_a_deeper_lobe_to_be_called_oscillating() -> None:
+    """``is_oscillating``: a swing at or above ``oscillation_small_swing_deg`` (3 deg) is
+    oscillating with its lobe below ``oscillation_correlation`` (-0.5); a smaller one, as a
+    stuck surface's estimation noise makes, only below ``oscillation_small_swing_correlation``
+    (-0.7); none at or under the swing gate (2 deg), none without a lobe. Through the kind span:
+    a clean sine of 2.5 deg swing is oscillating, and stuck once its swing is "small" and the
+    deeper lobe is out of reach."""
+    cfg = stmmae.parse_config({}).kernel_vector
+    rad = math.radians
+    assert kern.is_oscillating(cfg, -0.6, rad(4.0))
+    assert not kern.is_oscillating(cfg, -0.6, rad(2.5))
+    assert kern.is_oscillating(cfg, -0.75, rad(2.5))
+    assert not kern.is_oscillating(cfg, -0.95, rad(1.9))
+    assert not kern.is_oscillating(cfg, -0.4, rad(5.0))
+    assert not kern.is_oscillating(cfg, math.nan, rad(5.0))
+    # a sine of 2.46 deg swing whose lobe reaches -0.995 (period 1.37 s)
+    n = int(5.0 / 0.01) + 50
+    values = [5.0 + 2.5 / math.sqrt(2.0) * math.sin(2.0 * math.pi * k * 0.01 / 1.37) for k in range(n)]
+    kinds = {}
+    for small in ({}, {"oscillation_small_swing_deg": 2.4, "oscillation_small_swing_correlation": -0.999},
+                  {"oscillation_small_swing_deg": 2.6, "oscillation_small_swing_correlation": -0.999}):
+        _, dec, _ = _kind_span(stmmae.parse_config(small), values)
+        kinds[small.get("oscillation_small_swing_deg")] = dec[0, kern.D_KIND]
+    assert kinds == {None: kern.KIND_OSCILLATING, 2.4: kern.KIND_OSCILLATING, 2.6: kern.KIND_STUCK}
+    with pytest.raises(ConfigError, match="oscillation_small_swing_correlation"):
+        stmmae.parse_config({"oscillation_small_swing_correlation": -0.4})
+
+
 def _kind_span(config, values_deg, probs=None, dt=0.01):
     """Detect at once and feed one surface's kind span a deflection history (deg; command 0,
     ample evidence, probability ``probs`` per sample, 0.95 by default); return the codes and
