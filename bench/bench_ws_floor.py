@@ -39,7 +39,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 import bench_ws  # noqa: E402
-from bench_ingest import make_stream, running_server  # noqa: E402
+from bench_ingest import _stop, free_port, make_stream, running_server  # noqa: E402
 from fleethealth_client import frames_of  # noqa: E402
 
 from app.config import Settings  # noqa: E402
@@ -94,17 +94,11 @@ uvicorn.run(app, host="127.0.0.1", port=int(sys.argv[1]), log_level="warning",
 """
 
 
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
 @contextmanager
 def floor_server(one_reply: bool, ready_timeout_s: float) -> Iterator[tuple[str, int]]:
     """Start the floor server; yield its URL and pid; stop it."""
     st = Settings()
-    port = _free_port()
+    port = free_port()
     args = [
         str(st.ws_max_frame_bytes),
         str(st.ws_ping_interval_s),
@@ -127,12 +121,7 @@ def floor_server(one_reply: bool, ready_timeout_s: float) -> Iterator[tuple[str,
                 time.sleep(0.05)
         yield f"http://127.0.0.1:{port}", proc.pid
     finally:
-        proc.terminate()
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(10)
+        _stop(proc)
 
 
 def measure(
