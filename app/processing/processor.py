@@ -447,8 +447,9 @@ class Processor:
         short ``processor_txn_budget_s``, unless the group's applies so far average
         ``LARGE_APPLY_SAMPLES`` samples or more per stream; then ``processor_compute_budget_s``.
         A large apply alone outlasts the short bound, so under it every group held one stream
-        and paid the group's fixed cost per stream (docs/benchmarks.md, "Apply groups of large
-        batches"); small applies keep the short bound, as their results wait for the commit."""
+        and paid the group's fixed cost per stream (docs/benchmarks.md, "PostgreSQL: apply
+        groups of large batches"); small applies keep the short bound, as their results wait
+        for the commit."""
         if prepared and sum(p.result.samples for p in prepared) >= LARGE_APPLY_SAMPLES * len(prepared):
             return self.settings.processor_compute_budget_s
         return self.settings.processor_txn_budget_s
