@@ -46,13 +46,14 @@ class Settings(BaseSettings):
     # Group commit of applies: streams applied in one transaction (each in its own savepoint).
     processor_max_streams_per_txn: int = Field(default=64, gt=0)
     # ... and no more streams join an apply transaction once it has run this long (SQLite: one
-    # that runs inside the write lock, which acknowledgements wait for; PostgreSQL: every one,
-    # under the streams' row locks).
+    # that runs inside the write lock, which acknowledgements wait for; PostgreSQL: one of small
+    # applies, under the streams' row locks).
     processor_txn_budget_s: float = Field(default=0.005, gt=0)
-    # SQLite: the same bound for a group computed outside the write lock (a read transaction,
-    # then a write transaction that only stores). A longer group spreads its fixed cost (its
-    # transactions, the reads of its streams' rows) over more streams when many streams apply
-    # at once; its streams' results wait for its commit.
+    # The same bound for a SQLite group computed outside the write lock (a read transaction,
+    # then a write transaction that only stores) and for a PostgreSQL group of large applies
+    # (Processor._bound_s). A longer group spreads its fixed cost (its transactions, the reads
+    # of its streams' rows) over more streams when many streams apply at once; its streams'
+    # results wait for its commit.
     processor_compute_budget_s: float = Field(default=0.05, gt=0)
     # Group commit of the telemetry log: appends committed in one transaction at most.
     log_writer_max_group: int = Field(default=256, gt=0)

@@ -709,6 +709,10 @@ def build_bank(config: StmmaeConfig) -> kern.BankArrays:
     ha = np.zeros((h.shape[0], na))
     ha[:, :n] = h
     hqh = np.einsum("ij,hjk,ik->hi", ha, qa, ha)
+    unbounded = (-math.inf, math.inf)
+    bounds = np.array(
+        [mdl.operating_range.get(y.name, unbounded) for y in mdl.measurements], dtype=np.float64
+    )
     arrays = kern.BankArrays(
         phi=phi,
         gin=gin,
@@ -731,14 +735,8 @@ def build_bank(config: StmmaeConfig) -> kern.BankArrays:
         slot_surface=slot_surface,
         floors=floors,
         collinear=_collinearity(phi, ha, r, slot_surface, n, len(surf_idx)),
-        range_lo=np.array(
-            [mdl.operating_range.get(y.name, (-math.inf, math.inf))[0] for y in mdl.measurements],
-            dtype=np.float64,
-        ),
-        range_hi=np.array(
-            [mdl.operating_range.get(y.name, (-math.inf, math.inf))[1] for y in mdl.measurements],
-            dtype=np.float64,
-        ),
+        range_lo=bounds[:, 0].copy(),
+        range_hi=bounds[:, 1].copy(),
     )
     for a in arrays:
         a.setflags(write=False)
@@ -868,7 +866,7 @@ def state_parts(config: StmmaeConfig, state: StmmaeState) -> StateParts:
         )
     nh, na, p, m = lay.nh, lay.na, lay.p, lay.m
     blocks = vec[lay.filt : lay.filt + nh * lay.filt_len].reshape(nh, lay.filt_len)
-    checks = vec[lay.operating + p : lay.length]
+    checks = vec[lay.checks : lay.length]
     v_off = na + na * na
     return StateParts(
         samples_seen=float(vec[kern.ST_N_SEEN]),
@@ -885,7 +883,7 @@ def state_parts(config: StmmaeConfig, state: StmmaeState) -> StateParts:
         window=vec[lay.window : lay.window + kern.W_LEN],
         applied=vec[lay.applied : lay.applied + m],
         groups=vec[lay.groups : lay.operating].reshape(lay.s, kern.G_LEN),
-        operating=vec[lay.operating : lay.operating + p],
+        operating=vec[lay.operating : lay.checks],
         outside_samples=checks[kern.CK_OUTSIDE : kern.CK_OUTSIDE + 1],
         noise_sums=checks[kern.CK_NOISE_SUM : kern.CK_NOISE_N + 1],
         noise_smoothed=checks[kern.CK_NOISE_SMOOTH : kern.CK_NOISE_SMOOTH + 1],
@@ -917,8 +915,8 @@ def initial_state(config: StmmaeConfig) -> StmmaeState:
         g = lay.groups + h * kern.G_LEN
         for idx in kern.G_TIMES:
             vec[g + idx] = np.nan
-    vec[lay.operating : lay.operating + lay.p] = np.nan
-    vec[lay.operating + lay.p + kern.CK_NOISE_SMOOTH] = np.nan
+    vec[lay.operating : lay.checks] = np.nan
+    vec[lay.checks + kern.CK_NOISE_SMOOTH] = np.nan
     vec.setflags(write=False)
     return StmmaeState(version=STATE_VERSION, t_last_s=-math.inf, vector=vec)
 
@@ -1029,8 +1027,9 @@ def _upgrade_layout_v4(config: StmmaeConfig, vector: FloatArray) -> FloatArray:
 
 def _upgrade_layout_v5(config: StmmaeConfig, vector: FloatArray) -> FloatArray:
     """Version 5 -> 6: version 6 appends the operating range's smoothed measurements (unset:
-    the next valid values start them) and its count of samples outside it in the open window
-    (0: the window's earlier samples were not checked)."""
+    the next valid values start them) and the status checks: the open window's count of
+    samples outside the range and its innovation-energy sums (0: the window's earlier samples
+    were not checked), and the smoothed innovation energy (unset: the next value starts it)."""
     lay = layout(config)
     if vector.shape != (lay.operating,):
         raise EstimatorError(
@@ -1439,7 +1438,7 @@ def step(config: StmmaeConfig, state: StmmaeState, batch: Batch) -> tuple[Stmmae
     if batch.end_of_run and wacc[kern.W_COUNT] > 0.0:
         # the run is closed: its partial health window is scored now
         row = np.empty((1, kern.WIN_LEN))
-        kern._close_window(wacc, vec[lay.operating + lay.p : lay.length], float(t[n - 1]), row[0])
+        kern._close_window(wacc, vec[lay.checks : lay.length], float(t[n - 1]), row[0])
         windows = np.concatenate([windows, row])
     vec.setflags(write=False)
     new_state = StmmaeState(version=STATE_VERSION, t_last_s=float(t[n - 1]), vector=vec)

@@ -441,16 +441,17 @@ class Processor:
         # transaction holds the database's write lock (SQLite) or the streams' locks (PostgreSQL).
         return budget <= 0 or (i > 0 and time.perf_counter() - t0 > seconds)
 
-    def _bound_s(self, prepared: list[service.PreparedApply]) -> float:
+    def _bound_s(self, samples: int, streams: int) -> float:
         """How long a transaction that holds its streams (PostgreSQL's row locks; SQLite's write
         lock for its small in-lock applies) may run before no further stream joins it: the
-        short ``processor_txn_budget_s``, unless the group's applies so far average
-        ``LARGE_APPLY_SAMPLES`` samples or more per stream; then ``processor_compute_budget_s``.
+        short ``processor_txn_budget_s``, unless the group's applies so far (``samples`` over
+        ``streams``) average ``LARGE_APPLY_SAMPLES`` samples or more per stream; then
+        ``processor_compute_budget_s``.
         A large apply alone outlasts the short bound, so under it every group held one stream
         and paid the group's fixed cost per stream (docs/benchmarks.md, "PostgreSQL: apply
         groups of large batches"); small applies keep the short bound, as their results wait
         for the commit."""
-        if prepared and sum(p.result.samples for p in prepared) >= LARGE_APPLY_SAMPLES * len(prepared):
+        if streams and samples >= LARGE_APPLY_SAMPLES * streams:
             return self.settings.processor_compute_budget_s
         return self.settings.processor_txn_budget_s
 
@@ -495,7 +496,8 @@ class Processor:
         limits = self._limits()
         loaded = first or service.GroupLoad({}, {}, {})
         for i, pk in enumerate(pks):
-            if self._over(i, t0, budget, self._bound_s(prepared)):
+            bound = self._bound_s(self.settings.processor_max_samples_per_txn - budget, len(prepared))
+            if self._over(i, t0, budget, bound):
                 left = pks[i:]
                 break
             if i or first is None:

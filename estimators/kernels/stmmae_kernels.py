@@ -278,8 +278,8 @@ class Layout(NamedTuple):
     window: int
     applied: int  # (m,) the inputs applied over the step into the next sample (servo model)
     groups: int  # (s, G_LEN) group decision fields (twin halves detected together)
-    operating: int  # (p,) smoothed measurements of the operating range, then (CK_LEN,) the
-    # status checks (``CK_*``)
+    operating: int  # (p,) smoothed measurements of the operating range
+    checks: int  # (CK_LEN,) status checks (``CK_*``)
     length: int
 
 
@@ -309,6 +309,7 @@ def state_layout(nh: int, na: int, p: int, m: int, s: int) -> Layout:
         applied,
         applied + m,
         applied + m + s * G_LEN,
+        applied + m + s * G_LEN + p,
         applied + m + s * G_LEN + p + CK_LEN,
     )
 
