@@ -356,10 +356,11 @@ class StmmaeConfig(EstimatorConfigModel):
     group_detection: bool = Field(
         True,
         description="the two halves of a split surface (each the other's most collinear "
-        "surface) are also detected together, as 'one of the two', while no fault is active: "
-        "a fault_detected event names the group and both candidates as soon as the group's "
-        "conditions hold, before the data tell the halves apart; the half's own detection "
-        "follows and ends the group's episode (docs/methods-stmmae.md, 'Group detection')",
+        "surface) are also detected together, as 'one of the two', while neither half is in "
+        "fault: a fault_detected event names the group and both candidates as soon as the "
+        "group's conditions hold, before the data tell the halves apart (while another surface "
+        "is in fault, after group_hold_while_active_s); the half's own detection follows and "
+        "ends the group's episode (docs/methods-stmmae.md, 'Group detection')",
     )
     group_hold_s: Number = Field(
         0.1,
@@ -367,6 +368,17 @@ class StmmaeConfig(EstimatorConfigModel):
         le=3600.0,
         description="detection hold time of a group of two halves, s (twice hold_s: the "
         "group's probability sums three hypotheses, so the same data pass its level sooner)",
+    )
+    group_hold_while_active_s: Number = Field(
+        0.5,
+        ge=0.0,
+        le=3600.0,
+        description="detection hold time of a group of two halves while another surface is in "
+        "fault, s: a second fault on a split surface is raised as its group when the data do "
+        "not tell its halves apart beside the first fault; longer than group_hold_s because "
+        "the end of the first fault leaves its filter lagging for a few tenths of a second, "
+        "which filters holding the first fault and a half explain better "
+        "(docs/methods-stmmae.md, 'Group detection')",
     )
     group_onset_window_s: Number = Field(
         3.0,
@@ -602,6 +614,7 @@ def _kernel_vector(config: StmmaeConfig) -> FloatArray:
     cfg[kern.CFG_GROUP] = 1.0 if config.group_detection else 0.0
     cfg[kern.CFG_GROUP_ISO] = config.group_isolation_odds
     cfg[kern.CFG_GROUP_HOLD_S] = config.group_hold_s
+    cfg[kern.CFG_GROUP_HOLD_ACTIVE_S] = config.group_hold_while_active_s
     cfg[kern.CFG_GROUP_WINDOW_S] = config.group_onset_window_s
     cfg[kern.CFG_RANGE_SMOOTH_S] = config.operating_range_smoothing_s
     cfg[kern.CFG_CLEAR_DEFL] = math.radians(config.clear_deflection_deg)

@@ -80,7 +80,8 @@ CFG_GROUP_WINDOW_S = 29  # a group is detected only this long after its onset
 CFG_RANGE_SMOOTH_S = 30  # time constant of the measurements smoothed for the operating range
 CFG_OSC_SMALL_SWING = 31  # swing (rad) below which an oscillation needs the deeper lobe
 CFG_OSC_SMALL_CORR = 32  # autocorrelation level of that deeper lobe
-CFG_LEN = 33
+CFG_GROUP_HOLD_ACTIVE_S = 33  # detection hold time of a group while a surface is in fault
+CFG_LEN = 34
 COLLINEAR_STEPS = 20  # model steps over which a deflection's effect on the measurements is taken
 
 KIND_BLOCK_S = 0.05  # the kind test reads the deflection estimate as means over 0.05 s blocks
@@ -1071,15 +1072,18 @@ def _decide_group(
     llr: float,
     deflected: bool,
     back: bool,
-    any_active: bool,
+    outside: bool,
+    others_active: bool,
 ) -> int:
     """Detection and clearance of the group of twin halves ``h`` and ``a`` (fields on
     ``gdec[h]``) at one sample; returns 0, ``EV_DETECTED``, ``EV_CLEARED`` or
     ``EV_GROUP_ISOLATED``.
 
-    The group is detected, while no surface is in fault (``any_active`` false), when for
-    ``CFG_GROUP_HOLD_S`` together: ``q``, the probability that the new fault is in the group (either
-    half or both), and ``iso``, its odds against the strongest other surface or group, are
+    The group is detected, inside the operating range (``outside`` false) and while neither
+    half is in fault, when for ``CFG_GROUP_HOLD_S`` (``CFG_GROUP_HOLD_ACTIVE_S`` while another
+    surface is in fault: ``others_active``) together: ``q``, the probability that the new fault
+    is in the group (either half or both), and ``iso``, its odds against the strongest other
+    surface or group, are
     above ``CFG_DETECT_P``; one half's smoothed deflection estimate passes its deflection gate
     (``deflected``); and at the end the evidence ``llr`` (the better half's filter against the
     base family, per sample) summed over the run is at least ``CFG_MIN_LLR``: the conditions of
@@ -1107,7 +1111,13 @@ def _decide_group(
     elif q < cfg[CFG_CLEAR_P]:
         gdec[h, G_ONSET_T] = np.nan
     late = t - gdec[h, G_ONSET_T] > cfg[CFG_GROUP_WINDOW_S] + HOLD_TOL_S
-    if any_active or late or not (q > cfg[CFG_DETECT_P] and iso > cfg[CFG_DETECT_P] and deflected):
+    half_active = dec[h, D_ACTIVE] == 1.0 or dec[a, D_ACTIVE] == 1.0
+    if (
+        outside
+        or half_active
+        or late
+        or not (q > cfg[CFG_DETECT_P] and iso > cfg[CFG_DETECT_P] and deflected)
+    ):
         gdec[h, G_ABOVE_T] = np.nan
         return 0
     if math.isnan(gdec[h, G_ABOVE_T]):
@@ -1115,10 +1125,8 @@ def _decide_group(
         gdec[h, G_LLR] = 0.0
     if math.isfinite(llr):
         gdec[h, G_LLR] += llr
-    if (
-        t - gdec[h, G_ABOVE_T] >= cfg[CFG_GROUP_HOLD_S] - HOLD_TOL_S
-        and gdec[h, G_LLR] >= cfg[CFG_MIN_LLR]
-    ):
+    hold = cfg[CFG_GROUP_HOLD_ACTIVE_S] if others_active else cfg[CFG_GROUP_HOLD_S]
+    if t - gdec[h, G_ABOVE_T] >= hold - HOLD_TOL_S and gdec[h, G_LLR] >= cfg[CFG_MIN_LLR]:
         gdec[h, G_ACTIVE] = 1.0
         gdec[h, G_DETECTED_T] = t
         gdec[h, G_BELOW_T] = np.nan
@@ -1651,10 +1659,12 @@ def _bank_kernel(
             dec[h, D_PROB] = pm[h]
             cmd = applied[surface_inputs[h]]  # the command as the surface follows it
             llr = rel_in[h] - rel_base[h] if nv > 0 and dec[h, D_ACTIVE] != 1.0 else 0.0
-            # while its group is detected, a half is named on the stronger odds CFG_GROUP_ISO
+            # while its group is detected and no other surface is in fault, a half is named on
+            # the stronger odds CFG_GROUP_ISO (beside another fault, on the detection odds, as
+            # without the group: the group stage then changes no surface's detection)
             iso_level = cfg[CFG_DETECT_P]
             lead = min(h, twin_of[h])
-            if groups_on and lead >= 0 and gdec[lead, G_ACTIVE] == 1.0:
+            if groups_on and lead >= 0 and gdec[lead, G_ACTIVE] == 1.0 and n_active_before == 0:
                 iso_level = max(iso_level, cfg[CFG_GROUP_ISO])
             if outside:
                 iso_level = np.inf  # no odds pass: detection withheld
@@ -1756,7 +1766,8 @@ def _bank_kernel(
                     llr_g,
                     deflected,
                     back,
-                    n_active_after > 0 or outside,
+                    outside,
+                    n_active_after > 0,
                 )
                 if code == EV_GROUP_ISOLATED:
                     half = h if dec[h, D_ACTIVE] == 1.0 else a

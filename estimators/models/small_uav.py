@@ -342,6 +342,11 @@ INITIAL_STD = (1.0, 0.05, 0.05, 0.2, 0.2, 0.2, 0.05, 0.05)
 # half-width of the reference model's operating range in airspeed (m/s): fault-free flights
 # cruising 5-7 m/s off the model's trim airspeed raised false alarms, 0-4.5 m/s off none
 OPERATING_AIRSPEED_BAND_M_S = 4.0
+# bound of the reference model's operating range in sideslip (deg, either side of the trim's 0):
+# on fault-free development flights the share of samples with a surface's fault probability
+# above 0.5 grew from under 1 % to 5-10 % with the 10 s smoothed sideslip beyond 4 deg and to
+# about 40 % beyond 6 deg (docs/methods-stmmae.md, "Operating range")
+OPERATING_SIDESLIP_DEG = 6.0
 
 
 @lru_cache(maxsize=8)
@@ -374,11 +379,13 @@ def reference_model(dt_s: float = 0.01, airspeed_m_s: float = 25.0) -> dict[str,
         "x_trim": trim.reduced_state.tolist(),
         "u_trim": trim.inputs.tolist(),
         # where the linearization holds: the measured airspeed, smoothed, within
-        # OPERATING_AIRSPEED_BAND_M_S of the trim airspeed (docs/methods-stmmae.md, "Operating range")
+        # OPERATING_AIRSPEED_BAND_M_S of the trim airspeed and the measured sideslip, smoothed,
+        # within OPERATING_SIDESLIP_DEG of the trim's zero (docs/methods-stmmae.md, "Operating range")
         "operating_range": {
             "airspeed": [
                 airspeed_m_s - OPERATING_AIRSPEED_BAND_M_S,
                 airspeed_m_s + OPERATING_AIRSPEED_BAND_M_S,
-            ]
+            ],
+            "beta": [-math.radians(OPERATING_SIDESLIP_DEG), math.radians(OPERATING_SIDESLIP_DEG)],
         },
     }

@@ -19,8 +19,8 @@ from filterpy.stats import logpdf
 from estimators import stmmae
 from estimators.base import Batch, ConfigError, EstimatorError, OutOfOrderError, StateVersionError
 from estimators.kernels import stmmae_kernels as kern
-from estimators.models.small_uav import SURFACES, reference_model
-from estimators.simulators.uav_closed_loop import SurfaceFault, simulate_flight
+from estimators.models.small_uav import OPERATING_SIDESLIP_DEG, SURFACES, reference_model
+from estimators.simulators.uav_closed_loop import Manoeuvre, SurfaceFault, simulate_flight
 
 ONE_FAULT = (SurfaceFault("aileron_right", 8.0, 20.0, "stuck", position_deg=12.0),)
 
@@ -699,7 +699,9 @@ def _decide_run(
     log-likelihood ratio) samples (``others_active``: another surface is in fault;
     ``defl_std_deg``: posterior std of the deflection estimate); return the codes raised and
     the decision fields."""
-    codes, dec, _ = _decide_steps(config, probs, defl_deg, cmd_deg, llrs, dt, others_active, defl_std_deg)
+    codes, dec, _ = _decide_steps(
+        config, probs, defl_deg, cmd_deg, llrs, dt, others_active, defl_std_deg
+    )
     return codes, dec
 
 
@@ -904,10 +906,15 @@ def test_a_small_swing_needs_a_deeper_lobe_to_be_called_oscillating() -> None:
     assert not kern.is_oscillating(cfg, math.nan, rad(5.0))
     # a sine of 2.46 deg swing whose lobe reaches -0.995 (period 1.37 s)
     n = int(5.0 / 0.01) + 50
-    values = [5.0 + 2.5 / math.sqrt(2.0) * math.sin(2.0 * math.pi * k * 0.01 / 1.37) for k in range(n)]
+    values = [
+        5.0 + 2.5 / math.sqrt(2.0) * math.sin(2.0 * math.pi * k * 0.01 / 1.37) for k in range(n)
+    ]
     kinds = {}
-    for small in ({}, {"oscillation_small_swing_deg": 2.4, "oscillation_small_swing_correlation": -0.999},
-                  {"oscillation_small_swing_deg": 2.6, "oscillation_small_swing_correlation": -0.999}):
+    for small in (
+        {},
+        {"oscillation_small_swing_deg": 2.4, "oscillation_small_swing_correlation": -0.999},
+        {"oscillation_small_swing_deg": 2.6, "oscillation_small_swing_correlation": -0.999},
+    ):
         _, dec, _ = _kind_span(stmmae.parse_config(small), values)
         kinds[small.get("oscillation_small_swing_deg")] = dec[0, kern.D_KIND]
     assert kinds == {None: kern.KIND_OSCILLATING, 2.4: kern.KIND_OSCILLATING, 2.6: kern.KIND_STUCK}
@@ -1067,7 +1074,10 @@ def test_second_fault_while_one_is_active_is_isolated_by_pair_hypotheses() -> No
     and kept; the seed's bank of single-surface filters does not find the second within the
     flight (no filter explains two faults). (At -13 deg, 7 deg from trim, the right elevator's
     odds against the left one stay at 2-4 to 1 in this straight flight and the isolation
-    condition holds its detection back: docs/methods-stmmae.md.)"""
+    condition holds its detection back: docs/methods-stmmae.md.) Before the half is named, its
+    group "one of the two elevators" is raised (after ``group_hold_while_active_s``) and handed
+    to the half; beside the rudder's fault the half is named on the detection odds, so the
+    surfaces' events are those of the bank without the second-fault group."""
     faults = (
         SurfaceFault("rudder", 3.0, 30.0, "stuck", position_deg=7.7),
         SurfaceFault("elevator_right", 7.0, 30.0, "stuck", position_deg=-20.0),
@@ -1076,10 +1086,19 @@ def test_second_fault_while_one_is_active_is_isolated_by_pair_hypotheses() -> No
     config = stmmae.parse_config({})
     state, _, _, events, _ = run(config, t, ch)
     det = {e.detail["component"]: e.t_s for e in events if e.kind == "fault_detected"}
-    assert set(det) == {"rudder", "elevator_right"}
-    assert 3.0 < det["rudder"] < 3.5 and 7.0 < det["elevator_right"] < 11.0
-    assert {f["component"] for f in stmmae.active_faults(config, state)} == set(det)
-    assert not [e for e in events if e.kind == "fault_cleared"]
+    assert set(det) == {"rudder", "elevator", "elevator_right"}
+    assert 3.0 < det["rudder"] < 3.5 and 7.0 < det["elevator"] < det["elevator_right"] < 11.0
+    assert {f["component"] for f in stmmae.active_faults(config, state)} == {
+        "rudder",
+        "elevator_right",
+    }
+    cleared = [e for e in events if e.kind == "fault_cleared"]
+    assert [(e.detail["component"], e.detail["isolated_as"], e.t_s) for e in cleared] == [
+        ("elevator", "elevator_right", det["elevator_right"])
+    ]
+    no_group = stmmae.parse_config({"group_hold_while_active_s": 3600.0})
+    _, _, _, events_ng, _ = run(no_group, t, ch)
+    assert [e for e in events if e.detail["component"] != "elevator"] == events_ng
     single = stmmae.parse_config({"pair_hypotheses": False})
     _, _, _, events1, _ = run(single, t, ch)
     det1 = [e.detail["component"] for e in events1 if e.kind == "fault_detected"]
@@ -1311,8 +1330,12 @@ def _group_fields() -> np.ndarray:
     return g
 
 
-def _decide_group_run(config, q, iso, llr, deflected, back, half_active_at=None):
-    """Drive the group decision of surfaces 0 and 1 at 100 Hz; returns (time, code) pairs."""
+def _decide_group_run(
+    config, q, iso, llr, deflected, back, half_active_at=None, other_active=False, outside=False
+):
+    """Drive the group decision of surfaces 0 and 1 at 100 Hz (``other_active``: a surface
+    outside the group in fault; ``outside``: outside the operating range); returns (time,
+    code) pairs."""
     cfg = config.kernel_vector
     gdec = _group_fields()
     dec = np.zeros((2, kern.D_LEN))
@@ -1332,7 +1355,8 @@ def _decide_group_run(config, q, iso, llr, deflected, back, half_active_at=None)
             llr[k],
             deflected[k],
             back[k],
-            bool(np.any(dec[:, kern.D_ACTIVE] == 1.0)),  # a surface in fault
+            outside,
+            other_active or bool(np.any(dec[:, kern.D_ACTIVE] == 1.0)),  # a surface in fault
         )
         if code:
             codes.append((round(k * 0.01, 2), code))
@@ -1363,6 +1387,17 @@ def test_group_decision_detects_isolates_and_clears() -> None:
             assert got and got[0][0] == pytest.approx(1.5, abs=0.02)
         else:
             assert got == []
+    # while another surface is in fault, after the longer hold; outside the operating range,
+    # never
+    codes = _decide_group_run(
+        config, [0.95] * n, [0.95] * n, [1.0] * n, on, [False] * n, other_active=True
+    )
+    assert config.group_hold_while_active_s > config.group_hold_s
+    assert codes == [(config.group_hold_while_active_s, kern.EV_DETECTED)]
+    assert (
+        _decide_group_run(config, [0.95] * n, [0.95] * n, [1.0] * n, on, [False] * n, outside=True)
+        == []
+    )
     # a half detected ends the group's episode
     codes = _decide_group_run(
         config, [0.95] * n, [0.95] * n, [1.0] * n, on, [False] * n, half_active_at=50
@@ -1495,7 +1530,8 @@ def test_operating_range_is_checked_against_the_model() -> None:
         with pytest.raises(ConfigError, match=words):
             stmmae.parse_config({"model": {**model, "operating_range": bad}})
     config = stmmae.parse_config({})
-    assert config.model.operating_range == {"airspeed": (21.0, 29.0)}
+    sideslip = math.radians(OPERATING_SIDESLIP_DEG)
+    assert config.model.operating_range == {"airspeed": (21.0, 29.0), "beta": (-sideslip, sideslip)}
 
 
 def test_no_fault_is_detected_outside_the_operating_range() -> None:
@@ -1526,6 +1562,44 @@ def test_no_fault_is_detected_outside_the_operating_range() -> None:
         if e.kind == "fault_detected"
     )
     assert out_in.health[0].indicators["outside_operating_range_fraction"] == 0.0
+
+
+def test_no_fault_is_detected_in_sustained_sideslip_until_it_is_back_in_range() -> None:
+    """Two overlapping turns of opposite bank demands hold the aircraft in a skid: the sideslip,
+    smoothed over 10 s, passes the reference model's 6 deg at about 24 s and is back under it by
+    about 31 s. A right aileron stuck from 28 s is held back while the smoothed sideslip is
+    outside (status "unknown" naming it, the samples counted) and detected once it is back
+    inside; with the airspeed bound alone it is detected at once."""
+    turns = (Manoeuvre(5.0, 25.0, -85.3, 0.0), Manoeuvre(9.0, 17.5, -100.1, 0.0))
+    fault = (SurfaceFault("aileron_right", 28.0, 40.0, "stuck", position_deg=-8.0),)
+    t, ch, _ = simulate_flight(
+        40.0, faults=fault, seed=3, sample_rate_hz=50.0, airspeed_m_s=26.5, manoeuvres=turns
+    )
+    model = reference_model(0.02, 26.5)
+    config = stmmae.parse_config({"health_window_samples": 500, "model": model})
+    cut = int(np.searchsorted(t, 29.5))
+    state, first = stmmae.step(
+        config,
+        stmmae.initial_state(config),
+        Batch(t_s=t[:cut], channels={k: v[:cut] for k, v in ch.items()}),
+    )
+    assert [e for e in first.events if e.kind == "fault_detected"] == []
+    assert first.status is not None and first.status.status == "unknown"
+    assert first.status.reasons[0].startswith("beta 0.1")
+    _, rest = stmmae.step(
+        config, state, Batch(t_s=t[cut:], channels={k: v[cut:] for k, v in ch.items()})
+    )
+    assert rest.health[0].t_start_s == 20.0  # the window 20-30 s
+    assert rest.health[0].indicators["outside_operating_range_fraction"] > 0.5
+    detected = [e.t_s for e in rest.events if e.kind == "fault_detected"]
+    assert detected and 30.0 < detected[0] < 33.0
+    airspeed_only = {**model, "operating_range": {"airspeed": model["operating_range"]["airspeed"]}}
+    config_off = stmmae.parse_config({"health_window_samples": 500, "model": airspeed_only})
+    _, out_off = stmmae.step(
+        config_off, stmmae.initial_state(config_off), Batch(t_s=t, channels=ch)
+    )
+    detected_off = [e.t_s for e in out_off.events if e.kind == "fault_detected"]
+    assert detected_off and 28.0 < detected_off[0] < 28.5
 
 
 def test_sensors_noisier_than_the_model_make_the_status_unknown() -> None:
