@@ -394,7 +394,7 @@ def report(
         "fresh 211000+, 212000+, 213000+ and the sets above, the last one (the sideslip bound of "
         "the operating range; second faults on split surfaces raised as their group) on the "
         "false alarm of 213029, 173000-173011 and the pairs of 232000+, and checked on 211000+, "
-        "212000+, 213000+, 181000+, 182000+ and the fresh 231000+, 233000+: "
+        "212000+, 213000+, 181000+, 182000+, 31000+, 32000+ and the fresh 231000+, 233000+: "
         "`docs/methods-stmmae.md`, 'Goals and what was measured'): "
         f"{len(singles)} flights with one fault, {len(pairs)} with two overlapping faults, "
         f"{len(free)} fault-free flights ({free_h:.2f} h). Generator: "
