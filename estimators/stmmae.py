@@ -380,6 +380,17 @@ class StmmaeConfig(EstimatorConfigModel):
         "which filters holding the first fault and a half explain better "
         "(docs/methods-stmmae.md, 'Group detection')",
     )
+    hold_while_fault_ends: bool = Field(
+        True,
+        description="no new surface or group is detected while a detected fault is ending: its "
+        "surface's fault probability below clear_probability and its deflection estimate back "
+        "within clear_deflection_deg of its command, its clearance pending; the filters "
+        "re-converge after the surface's return, and those freeing another surface fit that "
+        "transient better, which detected a surface wrongly 0.3-2 s after a fault's end; "
+        "only with pair_hypotheses (without pair filters the probability of a fault that "
+        "persists collapses too when a second one begins) (docs/methods-stmmae.md, 'A fault "
+        "that is ending holds new detections')",
+    )
     group_onset_window_s: Number = Field(
         3.0,
         gt=0.0,
@@ -615,6 +626,11 @@ def _kernel_vector(config: StmmaeConfig) -> FloatArray:
     cfg[kern.CFG_GROUP_ISO] = config.group_isolation_odds
     cfg[kern.CFG_GROUP_HOLD_S] = config.group_hold_s
     cfg[kern.CFG_GROUP_HOLD_ACTIVE_S] = config.group_hold_while_active_s
+    # the rule reads a collapse of an active fault's probability as its end: with pair filters a
+    # fault that persists keeps its probability through them when a second one begins; without
+    # them it does not, so the rule is off
+    ending = config.hold_while_fault_ends and config.pair_hypotheses
+    cfg[kern.CFG_HOLD_ENDING] = 1.0 if ending else 0.0
     cfg[kern.CFG_GROUP_WINDOW_S] = config.group_onset_window_s
     cfg[kern.CFG_RANGE_SMOOTH_S] = config.operating_range_smoothing_s
     cfg[kern.CFG_CLEAR_DEFL] = math.radians(config.clear_deflection_deg)

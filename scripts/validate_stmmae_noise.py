@@ -120,7 +120,9 @@ def main() -> int:
         "`R` (`innovation_noise_ratio`, about 1 with the model's noise) show it, and the health "
         "windows and the status then say 'unknown' (above `noise_ratio_unknown`, 2). The "
         "model's `R` must be the sensors' noise (`docs/methods-stmmae.md`, 'Goals and what was "
-        "measured').",
+        "measured'). With the model's noise or less, the few fault-free windows that say "
+        "'unknown' are skids outside the model's sideslip bound (its operating range), not "
+        "noise.",
         "",
         f"Wall time {(time.perf_counter() - t0) / 60:.0f} min.",
         END,

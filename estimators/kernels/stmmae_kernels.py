@@ -81,7 +81,8 @@ CFG_RANGE_SMOOTH_S = 30  # time constant of the measurements smoothed for the op
 CFG_OSC_SMALL_SWING = 31  # swing (rad) below which an oscillation needs the deeper lobe
 CFG_OSC_SMALL_CORR = 32  # autocorrelation level of that deeper lobe
 CFG_GROUP_HOLD_ACTIVE_S = 33  # detection hold time of a group while a surface is in fault
-CFG_LEN = 34
+CFG_HOLD_ENDING = 34  # 1: no new detection while a detected fault is ending (fault_ending)
+CFG_LEN = 35
 COLLINEAR_STEPS = 20  # model steps over which a deflection's effect on the measurements is taken
 
 KIND_BLOCK_S = 0.05  # the kind test reads the deflection estimate as means over 0.05 s blocks
@@ -1160,6 +1161,34 @@ def _write_group_event(
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def fault_ending(
+    cfg: FloatArray,
+    dec: FloatArray,
+    pm: FloatArray,
+    dmean: FloatArray,
+    applied: FloatArray,
+    surface_inputs: IntArray,
+) -> bool:
+    """Whether a detected fault is ending: a surface in fault whose marginal probability ``pm``
+    is below ``CFG_CLEAR_P`` and whose deflection estimate ``dmean`` is back within
+    ``CFG_CLEAR_DEFL`` of its command (``applied``, through ``surface_inputs``): the clearance
+    conditions on the estimate itself rather than on its smoothed value, which lags the
+    surface's return by a second or two. Its clearance is then pending, and meanwhile the
+    filters re-converge after the surface's return: those freeing another surface fit that
+    transient better than the no-fault filter and than the ending fault's own, which detected
+    that surface wrongly 0.3-2 s after the end of a fault; no new detection is made while one
+    is ending."""
+    for h in range(dec.shape[0]):
+        if (
+            dec[h, D_ACTIVE] == 1.0
+            and pm[h] < cfg[CFG_CLEAR_P]
+            and abs(dmean[h] - applied[surface_inputs[h]]) < cfg[CFG_CLEAR_DEFL]
+        ):
+            return True
+    return False
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def _outside_range(bank: BankArrays, ysm: FloatArray, y_k: FloatArray, a_range: float) -> bool:
     """Smooth each bounded measurement (first-order, share ``a_range`` of the gap per sample;
     the first valid value starts it; a missing value holds it) and return whether any smoothed
@@ -1650,6 +1679,9 @@ def _bank_kernel(
                 n_active_before += 1
         for h in range(ns):
             dmean[h] = dsum[h] / pm[h]
+        ending = cfg[CFG_HOLD_ENDING] != 0.0 and fault_ending(
+            cfg, dec, pm, dmean, applied, surface_inputs
+        )
         for h in range(ns):
             defl = dmean[h]
             samples[row, k] = defl
@@ -1666,8 +1698,8 @@ def _bank_kernel(
             lead = min(h, twin_of[h])
             if groups_on and lead >= 0 and gdec[lead, G_ACTIVE] == 1.0 and n_active_before == 0:
                 iso_level = max(iso_level, cfg[CFG_GROUP_ISO])
-            if outside:
-                iso_level = np.inf  # no odds pass: detection withheld
+            if outside or ending:
+                iso_level = np.inf  # no odds pass: detection withheld (fault_ending)
             code = _decide(
                 cfg,
                 dec,
@@ -1766,7 +1798,7 @@ def _bank_kernel(
                     llr_g,
                     deflected,
                     back,
-                    outside,
+                    outside or ending,
                     n_active_after > 0,
                 )
                 if code == EV_GROUP_ISOLATED:

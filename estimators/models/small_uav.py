@@ -344,8 +344,8 @@ INITIAL_STD = (1.0, 0.05, 0.05, 0.2, 0.2, 0.2, 0.05, 0.05)
 OPERATING_AIRSPEED_BAND_M_S = 4.0
 # bound of the reference model's operating range in sideslip (deg, either side of the trim's 0):
 # on fault-free development flights the share of samples with a surface's fault probability
-# above 0.5 grew from under 1 % to 5-10 % with the 10 s smoothed sideslip beyond 4 deg and to
-# about 40 % beyond 6 deg (docs/methods-stmmae.md, "Operating range")
+# above 0.5 grew from under 1 % to 5-10 % with the 10 s smoothed sideslip beyond 4 deg and up
+# to 41 % beyond 6 deg (docs/methods-stmmae.md, "Operating range")
 OPERATING_SIDESLIP_DEG = 6.0
 
 

@@ -1105,6 +1105,67 @@ def test_second_fault_while_one_is_active_is_isolated_by_pair_hypotheses() -> No
     assert det1 == ["rudder"]
 
 
+def test_a_fault_is_ending_when_its_probability_is_gone_and_its_surface_follows_again() -> None:
+    """``fault_ending``: a surface in fault whose marginal probability is below the clearance
+    level and whose estimate is back within the clearance band of its command. Either alone is
+    not enough, nor is a surface not in fault."""
+    config = stmmae.parse_config({})
+    cfg = config.kernel_vector
+    dec = np.zeros((2, kern.D_LEN))
+    inputs = np.array([0, 1])
+    applied = np.radians([5.0, -3.0])
+    back = np.radians([5.5, 10.0])  # surface 0 within 1.5 deg of its command
+    away = np.radians([12.0, 10.0])
+    low, high = np.array([0.03, 0.9]), np.array([0.2, 0.9])  # levels 0.05 (clearance), 0.5
+
+    def ending(pm, dmean):
+        return kern.fault_ending(cfg, dec, pm, dmean, applied, inputs)
+
+    assert not ending(low, back)  # no fault active
+    dec[0, kern.D_ACTIVE] = 1.0
+    assert ending(low, back)
+    assert not ending(high, back)  # its probability still above the clearance level
+    assert not ending(low, away)  # its estimate still off the command
+    dec[0, kern.D_ACTIVE] = 0.0
+    dec[1, kern.D_ACTIVE] = 1.0  # surface 1 in fault: probability high, estimate 13 deg off
+    assert not ending(low, back)
+    # without pair filters a persisting fault's probability collapses too when a second one
+    # begins: the rule is off there
+    assert config.kernel_vector[kern.CFG_HOLD_ENDING] == 1.0
+    single = stmmae.parse_config({"pair_hypotheses": False})
+    assert single.kernel_vector[kern.CFG_HOLD_ENDING] == 0.0
+
+
+def test_no_surface_is_detected_while_a_fault_ends() -> None:
+    """A rudder stuck at +20 deg returns to its command at 13 s: the filters re-converge and the
+    left elevator's filter fits the transient better than the no-fault filter and the rudder's,
+    which detected the left elevator at 13.3 s. While the rudder's fault is ending (probability
+    under the clearance level, estimate back at the command, clearance pending) nothing new is
+    detected; a right
+    aileron stuck after the rudder's clearance is detected as before."""
+    faults = (
+        SurfaceFault("rudder", 3.0, 13.0, "stuck", position_deg=20.0),
+        SurfaceFault("aileron_right", 18.0, 24.0, "stuck", position_deg=10.0),
+    )
+    t, ch, _ = simulate_flight(24.0, faults=faults, seed=0)
+    detected = {}
+    for flag in (True, False):
+        config = stmmae.parse_config({"hold_while_fault_ends": flag})
+        _, _, _, events, _ = run(config, t, ch)
+        detected[flag] = [
+            (e.detail["component"], round(e.t_s, 2)) for e in events if e.kind == "fault_detected"
+        ]
+        cleared = [
+            e.t_s for e in events if e.kind == "fault_cleared" and e.detail["component"] == "rudder"
+        ]
+        assert len(cleared) == 1 and 13.0 < cleared[0] < 18.0
+    assert [c for c, _ in detected[True]] == ["rudder", "aileron", "aileron_right"]
+    assert detected[True][1][1] > 18.0
+    wrong = [(c, ts) for c, ts in detected[False] if c.startswith("elevator")]
+    assert wrong and 13.0 < wrong[0][1] < 14.0
+    assert [d for d in detected[False] if not d[0].startswith("elevator")] == detected[True]
+
+
 def test_end_of_run_closes_the_partial_health_window(flight) -> None:
     """Every sample of a closed run is in a health window, split or not; without the marker the
     partial window stays open in the state."""
