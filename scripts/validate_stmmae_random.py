@@ -395,7 +395,7 @@ def report(
         "the operating range; second faults on split surfaces raised as their group; no "
         "detection while a fault ends) on the false alarm of 213029, 173000-173011 and "
         "231000+, 232000+, and checked on 211000+, 212000+, 213000+, 181000+, 182000+, 31000+, "
-        "32000+ and the fresh 233000+, 253000+: "
+        "32000+, 151000+, 152000+, 161000+, 162000+ and the fresh 233000+, 253000+: "
         "`docs/methods-stmmae.md`, 'Goals and what was measured'): "
         f"{len(singles)} flights with one fault, {len(pairs)} with two overlapping faults, "
         f"{len(free)} fault-free flights ({free_h:.2f} h). Generator: "
