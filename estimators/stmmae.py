@@ -423,10 +423,10 @@ class StmmaeConfig(EstimatorConfigModel):
         0.99,
         gt=0.0,
         lt=1.0,
-        description="while a group of two halves is detected, a half is named only when its "
-        "isolation odds against the other surfaces exceed this level (detect_probability "
-        "otherwise): the group has raised the alert, so the choice of the half can wait for "
-        "stronger evidence",
+        description="while a group of two halves is detected and no other surface is in fault, "
+        "a half is named only when its isolation odds against the other surfaces exceed this "
+        "level (detect_probability otherwise, and beside another fault): the group has raised "
+        "the alert, so the choice of the half can wait for stronger evidence",
     )
     deflection_limit_deg: Number = Field(
         30.0, gt=0.0, le=180.0, description="clip of the deflection estimate, deg"

@@ -74,7 +74,7 @@ CFG_SERVO_A = 23  # servo model: a surface's applied deflection moves by this sh
 # to its command per model step (1 - exp(-dt / tau); 1: no lag)
 CFG_KIND_TWIN = 25  # 1: a fault's kind history is conditioned on the active stuck faults' positions
 CFG_GROUP = 26  # 1: twin halves are detected together ("one of the two") before one is isolated
-CFG_GROUP_ISO = 27  # isolation odds a half needs while its group is detected
+CFG_GROUP_ISO = 27  # isolation odds a half needs while its group is detected, no other fault active
 CFG_GROUP_HOLD_S = 28  # detection hold time of a group
 CFG_GROUP_WINDOW_S = 29  # a group is detected only this long after its onset
 CFG_RANGE_SMOOTH_S = 30  # time constant of the measurements smoothed for the operating range
