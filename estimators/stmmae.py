@@ -270,6 +270,15 @@ class StmmaeConfig(EstimatorConfigModel):
         "active fault: fewer wrong-surface detections, but some second faults missed; "
         "docs/methods-stmmae.md)",
     )
+    hold_while_twin_active_s: Number = Field(
+        0.3,
+        ge=0.0,
+        le=3600.0,
+        description="detection hold time of a half of a split surface while its twin is in "
+        "fault, s (in place of hold_while_active_s: the pair filter of two halves absorbs the "
+        "transient of a fault's abrupt change longest, and most wrong-surface detections named "
+        "the twin of a half in fault; docs/methods-stmmae.md)",
+    )
     clear_hold_s: Number = Field(
         1.0,
         ge=0.0,
@@ -611,6 +620,7 @@ def _kernel_vector(config: StmmaeConfig) -> FloatArray:
     cfg[kern.CFG_CLEAR_P] = config.clear_probability
     cfg[kern.CFG_HOLD_S] = config.hold_s
     cfg[kern.CFG_HOLD_ACTIVE_S] = config.hold_while_active_s
+    cfg[kern.CFG_HOLD_TWIN_S] = config.hold_while_twin_active_s
     cfg[kern.CFG_CLEAR_HOLD_S] = config.clear_hold_s
     cfg[kern.CFG_ONSET_P] = config.onset_probability
     cfg[kern.CFG_WINDOW] = config.health_window_samples

@@ -82,7 +82,8 @@ CFG_OSC_SMALL_SWING = 31  # swing (rad) below which an oscillation needs the dee
 CFG_OSC_SMALL_CORR = 32  # autocorrelation level of that deeper lobe
 CFG_GROUP_HOLD_ACTIVE_S = 33  # detection hold time of a group while a surface is in fault
 CFG_HOLD_ENDING = 34  # 1: no new detection while a detected fault is ending (fault_ending)
-CFG_LEN = 35
+CFG_HOLD_TWIN_S = 35  # detection hold time of a surface while its twin is in fault
+CFG_LEN = 36
 COLLINEAR_STEPS = 20  # model steps over which a deflection's effect on the measurements is taken
 
 KIND_BLOCK_S = 0.05  # the kind test reads the deflection estimate as means over 0.05 s blocks
@@ -928,17 +929,16 @@ def _decide(
     a_smooth: float,
     a_clear: float,
     llr: float,
-    others_active: bool,
+    hold: float,
     kval: float,
 ) -> int:
     """Detection, classification and clearance of one surface at one sample; returns 0 or
     ``EV_DETECTED``/``EV_CLASSIFIED``/``EV_CLEARED`` (the caller writes the event from
     ``dec[h]``; after a clearance it calls :func:`reset_after_clearance`).
 
-    Detection needs, held together for ``CFG_HOLD_S`` (``CFG_HOLD_ACTIVE_S`` while another
-    surface is in fault, ``others_active``): the marginal probability ``prob`` above
-    ``CFG_DETECT_P`` and the isolation odds ``iso`` (the surface's probability of being the only
-    new fault against its strongest competitor's) above ``iso_level`` (``CFG_DETECT_P``, or
+    Detection needs, held together for ``hold`` (:func:`detection_hold`): the marginal
+    probability ``prob`` above ``CFG_DETECT_P`` and the isolation odds ``iso`` (the surface's
+    probability of being the only new fault against its strongest competitor's) above ``iso_level`` (``CFG_DETECT_P``, or
     ``CFG_GROUP_ISO`` while the surface's group is detected), the smoothed deflection estimate more
     than ``CFG_MIN_ERR`` from the command, and at the end the log-likelihood ratio between the
     nested families (:func:`_relevant_loglik`) summed over the run at least ``CFG_MIN_LLR``.
@@ -976,7 +976,6 @@ def _decide(
             if math.isfinite(llr):
                 dec[h, D_LLR] += llr
             _kind_add(dec, kbuf, h, t, kval, defl_var)
-            hold = cfg[CFG_HOLD_ACTIVE_S] if others_active else cfg[CFG_HOLD_S]
             if t - dec[h, D_ABOVE_T] >= hold - HOLD_TOL_S and dec[h, D_LLR] >= cfg[CFG_MIN_LLR]:
                 dec[h, D_ACTIVE] = 1.0
                 dec[h, D_DETECTED_T] = t
@@ -1014,6 +1013,18 @@ def _decide(
     else:
         dec[h, D_BELOW_T] = np.nan
     return code
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def detection_hold(cfg: FloatArray, dec: FloatArray, h: int, twin: int, n_active: int) -> float:
+    """Hold time of a detection of surface ``h`` (its twin ``twin``, -1 for none) with
+    ``n_active`` surfaces in fault: ``CFG_HOLD_S`` while none is, ``CFG_HOLD_TWIN_S`` while its
+    twin is, ``CFG_HOLD_ACTIVE_S`` while another surface is."""
+    if n_active == 0:
+        return float(cfg[CFG_HOLD_S])
+    if twin >= 0 and dec[twin, D_ACTIVE] == 1.0:
+        return float(cfg[CFG_HOLD_TWIN_S])
+    return float(cfg[CFG_HOLD_ACTIVE_S])
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -1716,7 +1727,7 @@ def _bank_kernel(
                 a_smooth,
                 a_clear,
                 llr,
-                n_active_before > 0,
+                detection_hold(cfg, dec, h, twin_of[h], n_active_before),
                 kind_value(cfg, dec, bank.slot_surface, ps, n, h, dmean, bank.collinear),
             )
             if code != 0:

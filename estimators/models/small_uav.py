@@ -347,6 +347,14 @@ OPERATING_AIRSPEED_BAND_M_S = 4.0
 # above 0.5 grew from under 1 % to 5-10 % with the 10 s smoothed sideslip beyond 4 deg and up
 # to 41 % beyond 6 deg (docs/methods-stmmae.md, "Operating range")
 OPERATING_SIDESLIP_DEG = 6.0
+# bounds of the reference model's operating range in angle of attack (deg either side of the
+# trim's) and in each angular rate p, q, r (deg/s either side of the trim's 0): in 10 fault-free
+# flight hours the 10 s smoothed angle of attack stayed within 4.3 deg of trim and the smoothed
+# rates within 13 deg/s; after some faults the simulated aircraft departs into loops (angle of
+# attack 0.5 rad, pitch rate 1.5-4 rad/s) where the linear model says nothing
+# (docs/methods-stmmae.md, "Operating range")
+OPERATING_ALPHA_DEG = 7.0
+OPERATING_RATE_DEG_S = 30.0
 
 
 @lru_cache(maxsize=8)
@@ -378,14 +386,24 @@ def reference_model(dt_s: float = 0.01, airspeed_m_s: float = 25.0) -> dict[str,
         "P0": np.diag(np.square(INITIAL_STD)).tolist(),
         "x_trim": trim.reduced_state.tolist(),
         "u_trim": trim.inputs.tolist(),
-        # where the linearization holds: the measured airspeed, smoothed, within
-        # OPERATING_AIRSPEED_BAND_M_S of the trim airspeed and the measured sideslip, smoothed,
-        # within OPERATING_SIDESLIP_DEG of the trim's zero (docs/methods-stmmae.md, "Operating range")
+        # where the linearization holds, each measurement smoothed: the airspeed within
+        # OPERATING_AIRSPEED_BAND_M_S of the trim airspeed, the sideslip within
+        # OPERATING_SIDESLIP_DEG of the trim's zero, the angle of attack within OPERATING_ALPHA_DEG
+        # of the trim's and the angular rates within OPERATING_RATE_DEG_S of zero
+        # (docs/methods-stmmae.md, "Operating range")
         "operating_range": {
             "airspeed": [
                 airspeed_m_s - OPERATING_AIRSPEED_BAND_M_S,
                 airspeed_m_s + OPERATING_AIRSPEED_BAND_M_S,
             ],
             "beta": [-math.radians(OPERATING_SIDESLIP_DEG), math.radians(OPERATING_SIDESLIP_DEG)],
+            "alpha": [
+                trim.alpha_rad - math.radians(OPERATING_ALPHA_DEG),
+                trim.alpha_rad + math.radians(OPERATING_ALPHA_DEG),
+            ],
+            **{
+                rate: [-math.radians(OPERATING_RATE_DEG_S), math.radians(OPERATING_RATE_DEG_S)]
+                for rate in ("p", "q", "r")
+            },
         },
     }

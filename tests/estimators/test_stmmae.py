@@ -19,7 +19,15 @@ from filterpy.stats import logpdf
 from estimators import stmmae
 from estimators.base import Batch, ConfigError, EstimatorError, OutOfOrderError, StateVersionError
 from estimators.kernels import stmmae_kernels as kern
-from estimators.models.small_uav import OPERATING_SIDESLIP_DEG, SURFACES, reference_model
+from estimators.models.small_uav import (
+    OPERATING_ALPHA_DEG,
+    OPERATING_RATE_DEG_S,
+    OPERATING_SIDESLIP_DEG,
+    SURFACES,
+    AerosondeParams,
+    reference_model,
+    trim_level,
+)
 from estimators.simulators.uav_closed_loop import Manoeuvre, SurfaceFault, simulate_flight
 
 ONE_FAULT = (SurfaceFault("aileron_right", 8.0, 20.0, "stuck", position_deg=12.0),)
@@ -726,7 +734,7 @@ def _decide_steps(config, probs, defl_deg, cmd_deg, llrs, dt, others_active, def
             a_s,
             a_c,
             llr,
-            others_active,
+            config.hold_while_active_s if others_active else config.hold_s,
             math.radians(d),  # the kind history's value: the estimate itself
         )
         if code:
@@ -788,7 +796,7 @@ def test_holds_count_samples_whatever_the_rounding_of_the_sample_times() -> None
                 1.0,  # no smoothing: the deflection gate holds from the first faulty sample
                 1.0,
                 2.0 if faulty else 0.0,
-                False,
+                config.hold_s,
                 math.radians(8.0),
             )
             if code == kern.EV_DETECTED:
@@ -843,6 +851,63 @@ def test_detection_while_another_fault_is_active_holds_longer() -> None:
         others_active=True,
     )
     assert codes == []
+
+
+def test_detection_hold_depends_on_the_faults_active() -> None:
+    """The hold of a surface's detection: ``hold_s`` with no fault active,
+    ``hold_while_twin_active_s`` while its twin is in fault, ``hold_while_active_s`` while
+    another surface is."""
+    config = stmmae.parse_config({"hold_while_twin_active_s": 0.4, "hold_while_active_s": 0.2})
+    cfg = config.kernel_vector
+    surfaces = config.model.surfaces
+    left, right = surfaces.index("elevator_left"), surfaces.index("elevator_right")
+    rudder = surfaces.index("rudder")
+    twin = kern.twin_index(config.arrays.collinear, left)
+    assert twin == right
+    dec = np.zeros((len(surfaces), kern.D_LEN))
+    assert kern.detection_hold(cfg, dec, left, twin, 0) == config.hold_s
+    dec[rudder, kern.D_ACTIVE] = 1.0
+    assert kern.detection_hold(cfg, dec, left, twin, 1) == 0.2
+    dec[right, kern.D_ACTIVE] = 1.0
+    assert kern.detection_hold(cfg, dec, left, twin, 2) == 0.4
+    assert kern.detection_hold(cfg, dec, rudder, -1, 2) == 0.2
+
+
+def test_a_half_oscillating_does_not_raise_its_twin_and_a_twin_fault_is_still_found() -> None:
+    """A left elevator in a square wave (-11 to +3 deg, period 0.87 s) from 10 s: the left
+    half's filter lags each jump and the pair filter of both halves explains the lag for a few
+    tenths of a second. With the twin held as any second fault (0.1 s) the right half is
+    detected at 11.1 s, 7 s before it fails, and its real fault (stuck at +6 deg from 18 s) is
+    then never raised and called oscillating; with ``hold_while_twin_active_s`` (0.3 s) the
+    right half is detected 0.3 s after it sticks and classified stuck."""
+    faults = (
+        SurfaceFault(
+            "elevator_left", 10.0, 30.0, "square", center_deg=-4.0, amplitude_deg=7.0, period_s=0.87
+        ),
+        SurfaceFault("elevator_right", 18.0, 30.0, "stuck", position_deg=6.0),
+    )
+    t, ch, _ = simulate_flight(32.0, faults=faults, seed=0)
+    batch = Batch(t_s=t, channels=ch)
+
+    def right_events(hold: float) -> list[tuple[float, str, str]]:
+        config = stmmae.parse_config({"hold_while_twin_active_s": hold})
+        _, out = stmmae.step(config, stmmae.initial_state(config), batch)
+        return [
+            (e.t_s, e.kind, e.detail["fault_kind"])
+            for e in out.events
+            if e.detail["component"] == "elevator_right"
+        ]
+
+    as_second = right_events(0.1)
+    assert as_second[0][1] == "fault_detected" and 10.5 < as_second[0][0] < 12.0
+    assert ("fault_classified", "oscillating") in [(k, f) for _, k, f in as_second]
+    assert stmmae.parse_config({}).hold_while_twin_active_s == 0.3
+    held = right_events(0.3)
+    assert [(k, f) for _, k, f in held] == [
+        ("fault_detected", "pending"),
+        ("fault_classified", "stuck"),
+    ]
+    assert 18.0 < held[0][0] < 18.6
 
 
 def test_clearance_hysteresis_keeps_a_fault_through_short_dips() -> None:
@@ -1592,7 +1657,17 @@ def test_operating_range_is_checked_against_the_model() -> None:
             stmmae.parse_config({"model": {**model, "operating_range": bad}})
     config = stmmae.parse_config({})
     sideslip = math.radians(OPERATING_SIDESLIP_DEG)
-    assert config.model.operating_range == {"airspeed": (21.0, 29.0), "beta": (-sideslip, sideslip)}
+    alpha = trim_level(AerosondeParams(), 25.0).alpha_rad
+    da = math.radians(OPERATING_ALPHA_DEG)
+    rate = math.radians(OPERATING_RATE_DEG_S)
+    assert config.model.operating_range == {
+        "airspeed": (21.0, 29.0),
+        "beta": (-sideslip, sideslip),
+        "alpha": (alpha - da, alpha + da),
+        "p": (-rate, rate),
+        "q": (-rate, rate),
+        "r": (-rate, rate),
+    }
 
 
 def test_no_fault_is_detected_outside_the_operating_range() -> None:
@@ -1661,6 +1736,41 @@ def test_no_fault_is_detected_in_sustained_sideslip_until_it_is_back_in_range() 
     )
     detected_off = [e.t_s for e in out_off.events if e.kind == "fault_detected"]
     assert detected_off and 28.0 < detected_off[0] < 28.5
+
+
+def test_no_fault_is_detected_once_the_aircraft_departs_from_controlled_flight() -> None:
+    """Both elevator halves stuck at +20 deg from 10 s: the pair is raised at once as "one of
+    the two elevators", then the aircraft pitches over into a loop (angle of attack about -0.5
+    rad, pitch rate about -1.4 rad/s), far from the level trim the model is linearized at. Once
+    the smoothed angle of attack and pitch rate leave the model's range no further detection is
+    made, and the status names both beside the fault. With the airspeed and sideslip bounds
+    alone a half is named in the loop."""
+    faults = tuple(
+        SurfaceFault(s, 10.0, 40.0, "stuck", position_deg=20.0)
+        for s in ("elevator_left", "elevator_right")
+    )
+    t, ch, _ = simulate_flight(20.0, faults=faults, seed=3)
+    batch = Batch(t_s=t, channels=ch)
+    config = stmmae.parse_config({"health_window_samples": 1000})
+    _, out = stmmae.step(config, stmmae.initial_state(config), batch)
+    detected = [(e.t_s, e.detail["component"]) for e in out.events if e.kind == "fault_detected"]
+    assert len(detected) == 1 and detected[0][1] == "elevator" and detected[0][0] < 10.5
+    assert out.status is not None and out.status.status == "alert"
+    outside = [r.split()[0] for r in out.status.reasons if "outside the model's operating" in r]
+    assert {"alpha", "q"} <= set(outside)
+    assert out.health[-1].indicators["outside_operating_range_fraction"] > 0.5
+    model = reference_model()
+    kept = {k: model["operating_range"][k] for k in ("airspeed", "beta")}
+    config_off = stmmae.parse_config(
+        {"health_window_samples": 1000, "model": {**model, "operating_range": kept}}
+    )
+    _, out_off = stmmae.step(config_off, stmmae.initial_state(config_off), batch)
+    halves = [
+        e
+        for e in out_off.events
+        if e.kind == "fault_detected" and e.detail["component"] != "elevator"
+    ]
+    assert halves and all(e.t_s > 12.0 for e in halves)
 
 
 def test_sensors_noisier_than_the_model_make_the_status_unknown() -> None:
