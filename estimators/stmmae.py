@@ -19,8 +19,11 @@ Decisions are per surface, on its marginal fault probability: a detection needs 
 and the isolation odds (its probability of being the only new fault against the strongest other
 surface's) above ``detect_probability``, the deflection estimate off its command and the
 log-likelihood ratio between "this surface and a subset of the active faults" and "a subset of
-the active faults" summed over the run above ``min_log_likelihood_ratio``, held ``hold_s``; the fault kind (stuck or oscillating) is judged from the autocorrelation of the
-deflection history over ``fault_kind_window_s`` (samples with the surface's probability at or
+the active faults" summed over the run above ``min_log_likelihood_ratio``, held ``hold_s``
+(``hold_while_active_s`` while another surface is in fault, ``hold_while_twin_active_s`` while
+its twin is), and none is made outside the model's operating range or while a detected fault
+ends (``hold_while_fault_ends``); the fault kind (stuck or oscillating) is judged from the
+autocorrelation of the deflection history over ``fault_kind_window_s`` (samples with the surface's probability at or
 below ``onset_probability`` skipped; cut before the onset of a fault detected during it,
 ``fault_kind_cut``); clearance needs the surface back at its
 command with a low probability for ``clear_hold_s``.

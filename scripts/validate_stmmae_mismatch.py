@@ -94,7 +94,8 @@ def report(runs: dict[bool, list[Run]], model_airspeed: float, seconds: float) -
         f"(31000+, 33000+, 181000+, 183000+), each run with the model linearized at "
         f"{model_airspeed:g} m/s whatever the flight's cruise airspeed (22-32 m/s), with the "
         "model's operating range (the default: smoothed airspeed within 4 m/s of the model's, "
-        "smoothed sideslip within 6 deg) "
+        "smoothed sideslip within 6 deg, angle of attack within 7 deg of the trim's, angular "
+        "rates within 30 deg/s) "
         "and without it. Mismatch: cruise airspeed less the model's. *Outside*: share of the "
         "samples outside the operating range (status 'unknown', no new detection). *Single "
         "faults detected*: a detection covering the surface during the fault.",

@@ -938,9 +938,10 @@ def _decide(
 
     Detection needs, held together for ``hold`` (:func:`detection_hold`): the marginal
     probability ``prob`` above ``CFG_DETECT_P`` and the isolation odds ``iso`` (the surface's
-    probability of being the only new fault against its strongest competitor's) above ``iso_level`` (``CFG_DETECT_P``, or
-    ``CFG_GROUP_ISO`` while the surface's group is detected), the smoothed deflection estimate more
-    than ``CFG_MIN_ERR`` from the command, and at the end the log-likelihood ratio between the
+    probability of being the only new fault against its strongest competitor's) above
+    ``iso_level`` (``CFG_DETECT_P``, ``CFG_GROUP_ISO`` while the surface's group is detected and
+    no other surface is in fault, infinite while outside the operating range or while a fault
+    ends), the smoothed deflection estimate more than ``CFG_MIN_ERR`` from the command, and at the end the log-likelihood ratio between the
     nested families (:func:`_relevant_loglik`) summed over the run at least ``CFG_MIN_LLR``.
     ``kval`` is the value the kind history records (``defl``, or ``defl`` corrected by an
     active stuck twin, :func:`kind_value`).
