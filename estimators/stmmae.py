@@ -69,7 +69,7 @@ from estimators.kernels.stmmae_kernels import IntArray
 from estimators.models.small_uav import reference_model
 
 NAME = "stmmae"
-STATE_VERSION = 6
+STATE_VERSION = 7
 
 Variant = Literal["improved", "strong_tracking", "emmae"]
 Likelihood = Literal["euclidean", "gaussian"]
@@ -360,10 +360,11 @@ class StmmaeConfig(EstimatorConfigModel):
     )
     fault_kind_twin_correction: bool = Field(
         True,
-        description="while another surface is in fault and judged stuck, and the filter "
-        "freeing both anticorrelates their deflection estimates (below -0.5: only their sum is "
-        "well determined, as for two halves of a split surface), a fault's kind history "
-        "records its estimate plus the other's estimate less its stuck position",
+        description="a fault's kind history records its deflection estimate conditioned on "
+        "its twin half's known position (the twin's stuck position while it is in fault and "
+        "judged stuck, its command while it is not in fault): only the sum of two halves' "
+        "deflections is well determined, and a filter freeing both splits the fault between "
+        "them (docs/methods-stmmae.md, 'Fault kind and stuck position')",
     )
     group_detection: bool = Field(
         True,
@@ -439,6 +440,17 @@ class StmmaeConfig(EstimatorConfigModel):
         "a half is named only when its isolation odds against the other surfaces exceed this "
         "level (detect_probability otherwise, and beside another fault): the group has raised "
         "the alert, so the choice of the half can wait for stronger evidence",
+    )
+    group_half_evidence: bool = Field(
+        True,
+        strict=True,
+        description="while a group of two halves is detected and no other surface is in "
+        "fault, a half's isolation odds are also taken from the log-likelihood of its "
+        "single-fault filter against its twin's, summed since the group's detection (the "
+        "larger odds count): while the filter freeing both halves holds the mass, as it does "
+        "for a fast oscillation of one half (which that half's own filter follows worse), "
+        "both single filters sit at their probability floor and the floors erase the evidence "
+        "between them (docs/methods-stmmae.md, 'Group detection')",
     )
     deflection_limit_deg: Number = Field(
         30.0, gt=0.0, le=180.0, description="clip of the deflection estimate, deg"
@@ -637,6 +649,7 @@ def _kernel_vector(config: StmmaeConfig) -> FloatArray:
     cfg[kern.CFG_KIND_TWIN] = 1.0 if config.fault_kind_twin_correction else 0.0
     cfg[kern.CFG_GROUP] = 1.0 if config.group_detection else 0.0
     cfg[kern.CFG_GROUP_ISO] = config.group_isolation_odds
+    cfg[kern.CFG_GROUP_HALF_EVIDENCE] = 1.0 if config.group_half_evidence else 0.0
     cfg[kern.CFG_GROUP_HOLD_S] = config.group_hold_s
     cfg[kern.CFG_GROUP_HOLD_ACTIVE_S] = config.group_hold_while_active_s
     # the rule reads a collapse of an active fault's probability as its end: with pair filters a
@@ -820,10 +833,10 @@ class StmmaeState:
         version: schema version (``STATE_VERSION``).
         t_last_s: time of the last sample seen (-inf before any).
         vector: FloatArray  # (layout.length,) packed parts, never modified in place.
-        layout_version: the layout ``vector`` has: ``STATE_VERSION``, or 2, 3, 4 or 5 for a
+        layout_version: the layout ``vector`` has: ``STATE_VERSION``, or 2, 3, 4, 5 or 6 for a
             state of that version just loaded, whose new parts need the configuration and are
             added by the first :func:`state_parts` or :func:`step` (see
-            :func:`_upgrade_layout_v2` to :func:`_upgrade_layout_v5`).
+            :func:`_upgrade_layout_v2` to :func:`_upgrade_layout_v6`).
     """
 
     version: int
@@ -855,7 +868,7 @@ class StateParts:
         applied: FloatArray  # (m,) inputs applied over the step into the next sample (the
             servo model's output; version 4).
         groups: FloatArray  # (s, kern.G_LEN) group decision fields (``G_*``) on the row of
-            the first half of each pair of twin halves (version 5).
+            the first half of each pair of twin halves (version 5; ``G_HALF_LLR`` version 7).
         operating: FloatArray  # (p,) measurements smoothed for the operating range (NaN until
             a first value, and for measurements without bounds; version 6).
         outside_samples: FloatArray  # (1,) samples outside the operating range in the open
@@ -965,7 +978,8 @@ def initial_state(config: StmmaeConfig) -> StmmaeState:
 
 def dump_state(state: StmmaeState) -> bytes:
     """Versioned byte form of the state (exact round trip; see :func:`dump_vector_state`). A
-    loaded version-2, -3, -4 or -5 state not stepped yet is written back as the state it is."""
+    loaded version-2, -3, -4, -5 or -6 state not stepped yet is written back as the state it
+    is."""
     return dump_vector_state(NAME, state.layout_version, state.t_last_s, state.vector)
 
 
@@ -1053,16 +1067,21 @@ def _upgrade_layout_v3(config: StmmaeConfig, vector: FloatArray) -> FloatArray:
     return fresh
 
 
+_V6_G_LEN = 6  # group decision fields per surface in versions 5 and 6
+
+
 def _upgrade_layout_v4(config: StmmaeConfig, vector: FloatArray) -> FloatArray:
-    """Version 4 -> 5: version 5 appends the group decision fields, which start as a fresh
-    state has them (no group detected, no run open): a group is judged from the next sample."""
+    """Version 4 -> 5: version 5 appends the group decision fields (its six per surface),
+    which start as a fresh state has them (no group detected, no run open): a group is judged
+    from the next sample."""
     lay = layout(config)
     if vector.shape != (lay.groups,):
         raise EstimatorError(
             f"version-4 state of length {vector.shape[0]} does not fit this configuration "
             f"(expected {lay.groups})"
         )
-    fresh = np.concatenate([vector, initial_state(config).vector[lay.groups : lay.operating]])
+    groups = initial_state(config).vector[lay.groups : lay.operating].reshape(lay.s, kern.G_LEN)
+    fresh = np.concatenate([vector, groups[:, :_V6_G_LEN].ravel()])
     fresh.setflags(write=False)
     return fresh
 
@@ -1073,12 +1092,33 @@ def _upgrade_layout_v5(config: StmmaeConfig, vector: FloatArray) -> FloatArray:
     samples outside the range and its innovation-energy sums (0: the window's earlier samples
     were not checked), and the smoothed innovation energy (unset: the next value starts it)."""
     lay = layout(config)
-    if vector.shape != (lay.operating,):
+    end = lay.groups + lay.s * _V6_G_LEN
+    if vector.shape != (end,):
         raise EstimatorError(
             f"version-5 state of length {vector.shape[0]} does not fit this configuration "
-            f"(expected {lay.operating})"
+            f"(expected {end})"
         )
     fresh = np.concatenate([vector, initial_state(config).vector[lay.operating :]])
+    fresh.setflags(write=False)
+    return fresh
+
+
+def _upgrade_layout_v6(config: StmmaeConfig, vector: FloatArray) -> FloatArray:
+    """Version 6 -> 7: version 7 adds a seventh group decision field, the summed evidence of
+    a detected group's first half against its second (``G_HALF_LLR``). It starts at 0, as at
+    a group's detection: a group detected when the state was dumped weighs its halves from
+    the next sample on."""
+    lay = layout(config)
+    end = lay.groups + lay.s * _V6_G_LEN
+    expected = end + lay.length - lay.operating
+    if vector.shape != (expected,):
+        raise EstimatorError(
+            f"version-6 state of length {vector.shape[0]} does not fit this configuration "
+            f"(expected {expected})"
+        )
+    groups = np.zeros((lay.s, kern.G_LEN))
+    groups[:, :_V6_G_LEN] = vector[lay.groups : end].reshape(lay.s, _V6_G_LEN)
+    fresh = np.concatenate([vector[: lay.groups], groups.ravel(), vector[end:]])
     fresh.setflags(write=False)
     return fresh
 
@@ -1094,11 +1134,13 @@ def _current_vector(config: StmmaeConfig, state: StmmaeState) -> FloatArray:
         vector = _upgrade_layout_v4(config, vector)
     if state.layout_version <= 5:
         vector = _upgrade_layout_v5(config, vector)
+    if state.layout_version <= 6:
+        vector = _upgrade_layout_v6(config, vector)
     return vector
 
 
 _UPGRADES: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {1: _upgrade_v1}
-_LAYOUT_VERSIONS = (2, 3, 4, 5, STATE_VERSION)  # versions whose vector this code reads directly
+_LAYOUT_VERSIONS = (2, 3, 4, 5, 6, STATE_VERSION)  # versions whose vector this code reads directly
 
 
 def load_state(data: bytes) -> StmmaeState:

@@ -83,7 +83,9 @@ CFG_OSC_SMALL_CORR = 32  # autocorrelation level of that deeper lobe
 CFG_GROUP_HOLD_ACTIVE_S = 33  # detection hold time of a group while a surface is in fault
 CFG_HOLD_ENDING = 34  # 1: no new detection while a detected fault is ending (fault_ending)
 CFG_HOLD_TWIN_S = 35  # detection hold time of a surface while its twin is in fault
-CFG_LEN = 36
+CFG_GROUP_HALF_EVIDENCE = 36  # 1: a half of a detected group is also named on the summed
+# log-likelihood of its single-fault filter against its twin's (G_HALF_LLR)
+CFG_LEN = 37
 COLLINEAR_STEPS = 20  # model steps over which a deflection's effect on the measurements is taken
 
 KIND_BLOCK_S = 0.05  # the kind test reads the deflection estimate as means over 0.05 s blocks
@@ -142,7 +144,9 @@ G_ONSET_T = 2  # start of the current run of the group's probability above the o
 G_DETECTED_T = 3
 G_BELOW_T = 4  # start of the current run of the group's clearance conditions
 G_LLR = 5  # evidence summed over the current detection run (nats)
-G_LEN = 6
+G_HALF_LLR = 6  # while the group is detected and no other surface in fault: log-likelihood of
+# the first half's single-fault filter minus the second's, summed since the detection (nats)
+G_LEN = 7
 G_TIMES = (G_ABOVE_T, G_ONSET_T, G_DETECTED_T, G_BELOW_T)  # NaN when unset
 
 # health-window accumulators
@@ -943,8 +947,8 @@ def _decide(
     no other surface is in fault, infinite while outside the operating range or while a fault
     ends), the smoothed deflection estimate more than ``CFG_MIN_ERR`` from the command, and at the end the log-likelihood ratio between the
     nested families (:func:`_relevant_loglik`) summed over the run at least ``CFG_MIN_LLR``.
-    ``kval`` is the value the kind history records (``defl``, or ``defl`` corrected by an
-    active stuck twin, :func:`kind_value`).
+    ``kval`` is the value the kind history records (``defl``, or the estimate conditioned on
+    its twin's known position, :func:`kind_value`).
     Clearance (hysteresis): the smoothed difference between deflection estimate
     and command inside ``CFG_CLEAR_DEFL`` (the surface follows its command again) and, unless
     the bank is rebased (the probability then no longer compares with the command), the
@@ -1247,6 +1251,32 @@ def _add_noise(checks: FloatArray, energy: float, a_range: float) -> None:
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def add_half_evidence(gdec: FloatArray, ll: FloatArray, h: int, a: int, on: bool) -> None:
+    """Sum into ``gdec[h, G_HALF_LLR]`` the log-likelihood of half ``h``'s single-fault filter
+    less its twin ``a``'s at this sample (filter ``g + 1`` holds surface ``g`` alone,
+    ``hypothesis_members``), while ``on`` (the group is detected and no other surface is in
+    fault); otherwise the sum restarts at 0. A sample on which either filter's update failed
+    (a log-likelihood not finite) adds nothing."""
+    if not on:
+        gdec[h, G_HALF_LLR] = 0.0
+        return
+    lh = ll[h + 1]
+    la = ll[a + 1]
+    if math.isfinite(lh) and math.isfinite(la):
+        gdec[h, G_HALF_LLR] += lh - la
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def half_odds(gdec: FloatArray, lead: int, h: int) -> float:
+    """Odds of half ``h`` against its twin, ``1 / (1 + exp(-L))``, from the summed
+    log-likelihood ``L`` of the group whose fields are on row ``lead`` (its sign turned for the
+    second half)."""
+    e = gdec[lead, G_HALF_LLR] if h == lead else -gdec[lead, G_HALF_LLR]
+    e = min(max(e, -700.0), 700.0)
+    return 1.0 / (1.0 + math.exp(-e))
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def reset_group(gdec: FloatArray, h: int) -> None:
     """The group of ``h`` back to "not detected" after its clearance (or isolation) event."""
     gdec[h, G_ACTIVE] = 0.0
@@ -1255,6 +1285,7 @@ def reset_group(gdec: FloatArray, h: int) -> None:
     gdec[h, G_DETECTED_T] = np.nan
     gdec[h, G_BELOW_T] = np.nan
     gdec[h, G_LLR] = 0.0
+    gdec[h, G_HALF_LLR] = 0.0
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -1262,46 +1293,56 @@ def kind_value(
     cfg: FloatArray,
     dec: FloatArray,
     slot_surface: IntArray,
+    xs: FloatArray,
     ps: FloatArray,
+    probs: FloatArray,
     n: int,
     h: int,
     defl: FloatArray,
-    collinear: FloatArray,
+    twin: int,
+    twin_cmd: float,
 ) -> float:
-    """The value the kind history of ``h`` records: its deflection estimate ``defl[h]``, plus,
-    conditioned, for every other surface ``a`` in fault whose kind has been judged stuck and
-    that is ``h``'s twin (:func:`twins`), on ``a`` being at its stuck position ``pos``: with
-    ``P`` the covariance of the filter freeing both, ``defl[h] + P_ha / P_aa (pos - defl[a])``.
-    ``a`` is taken to be constant, so its estimate's excursions are in good part ``h``'s
-    deflection misattributed to ``a`` (only the sum of the two is well determined)."""
+    """The value the kind history of ``h`` records: its deflection estimate conditioned on the
+    known position ``pos`` of its twin ``twin`` (:func:`twins`; -1 for none), the
+    probability-weighted mean over the filters freeing ``h`` of
+
+        x_f,h + P_f,ha / P_f,aa (pos - x_f,a)     (a filter freeing the twin too)
+        x_f,h                                     (one that holds the twin at its command)
+
+    with ``pos`` the twin's stuck position while it is in fault and judged stuck, its command
+    ``twin_cmd`` while it is not in fault. Only the sum of two halves' deflections is well
+    determined, so the excursions of a filter's twin estimate are in good part ``h``'s
+    deflection misattributed to the twin. Without a known position (the twin oscillating or
+    not judged yet), or with the option off: the plain estimate ``defl[h]``."""
     val = float(defl[h])
-    if cfg[CFG_KIND_TWIN] == 0.0:
+    if cfg[CFG_KIND_TWIN] == 0.0 or twin < 0:
         return val
-    ns = dec.shape[0]
-    nh = slot_surface.shape[0]
-    n_slots = slot_surface.shape[1]
-    for a in range(ns):
-        if a == h or dec[a, D_ACTIVE] != 1.0 or dec[a, D_KIND] != KIND_STUCK:
+    if dec[twin, D_ACTIVE] == 1.0:
+        if dec[twin, D_KIND] != KIND_STUCK:
+            return val
+        pos = episode_mean(dec, twin)
+    else:
+        pos = twin_cmd
+    if not math.isfinite(pos):
+        return val
+    num = 0.0
+    den = 0.0
+    for f in range(slot_surface.shape[0]):
+        sh = -1
+        sa = -1
+        for e in range(slot_surface.shape[1]):
+            if slot_surface[f, e] == h:
+                sh = n + e
+            elif slot_surface[f, e] == twin:
+                sa = n + e
+        if sh < 0:
             continue
-        if not twins(collinear, h, a):
-            continue
-        pos = episode_mean(dec, a)
-        if not math.isfinite(pos) or not math.isfinite(defl[a]):
-            continue
-        for f in range(nh):
-            sh = -1
-            sa = -1
-            for e in range(n_slots):
-                if slot_surface[f, e] == h:
-                    sh = n + e
-                elif slot_surface[f, e] == a:
-                    sa = n + e
-            if sh < 0 or sa < 0:
-                continue
-            if ps[f, sa, sa] > 0.0:
-                val += ps[f, sh, sa] / ps[f, sa, sa] * (pos - defl[a])
-            break
-    return val
+        v = xs[f, sh]
+        if sa >= 0 and ps[f, sa, sa] > 0.0:
+            v += ps[f, sh, sa] / ps[f, sa, sa] * (pos - xs[f, sa])
+        num += probs[f] * v
+        den += probs[f]
+    return num / den if den > 0.0 else val
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -1691,6 +1732,11 @@ def _bank_kernel(
                 n_active_before += 1
         for h in range(ns):
             dmean[h] = dsum[h] / pm[h]
+        if groups_on and cfg[CFG_GROUP_HALF_EVIDENCE] != 0.0 and nv > 0:
+            for h in range(ns):
+                if twin_of[h] > h:
+                    on = gdec[h, G_ACTIVE] == 1.0 and n_active_before == 0
+                    add_half_evidence(gdec, ll, h, twin_of[h], on)
         ending = cfg[CFG_HOLD_ENDING] != 0.0 and fault_ending(
             cfg, dec, pm, dmean, applied, surface_inputs
         )
@@ -1705,11 +1751,18 @@ def _bank_kernel(
             llr = rel_in[h] - rel_base[h] if nv > 0 and dec[h, D_ACTIVE] != 1.0 else 0.0
             # while its group is detected and no other surface is in fault, a half is named on
             # the stronger odds CFG_GROUP_ISO (beside another fault, on the detection odds, as
-            # without the group: the group stage then changes no surface's detection)
+            # without the group: the group stage then changes no surface's detection); its odds
+            # are then also those of its single-fault filter against its twin's, summed since
+            # the group's detection: while the filter freeing both halves holds the mass, both
+            # single filters sit at their probability floor, which erases the evidence between
+            # them (a fast oscillation of one half, which its own filter follows worse)
             iso_level = cfg[CFG_DETECT_P]
+            iso_h = iso[h]
             lead = min(h, twin_of[h])
             if groups_on and lead >= 0 and gdec[lead, G_ACTIVE] == 1.0 and n_active_before == 0:
                 iso_level = max(iso_level, cfg[CFG_GROUP_ISO])
+                if cfg[CFG_GROUP_HALF_EVIDENCE] != 0.0:
+                    iso_h = max(iso_h, half_odds(gdec, lead, h))
             if outside or ending:
                 iso_level = np.inf  # no odds pass: detection withheld (fault_ending)
             code = _decide(
@@ -1720,7 +1773,7 @@ def _bank_kernel(
                 tk,
                 dt,
                 pm[h],
-                iso[h],
+                iso_h,
                 iso_level,
                 defl,
                 vsum[h] / pm[h],
@@ -1729,7 +1782,19 @@ def _bank_kernel(
                 a_clear,
                 llr,
                 detection_hold(cfg, dec, h, twin_of[h], n_active_before),
-                kind_value(cfg, dec, bank.slot_surface, ps, n, h, dmean, bank.collinear),
+                kind_value(
+                    cfg,
+                    dec,
+                    bank.slot_surface,
+                    xs,
+                    ps,
+                    probs,
+                    n,
+                    h,
+                    dmean,
+                    twin_of[h],
+                    applied[surface_inputs[twin_of[h]]] if twin_of[h] >= 0 else np.nan,
+                ),
             )
             if code != 0:
                 events = _write_event(events, n_ev, tk, float(code), dec, h)

@@ -636,11 +636,12 @@ def test_episode_statistics_are_precision_weighted() -> None:
 DATA = Path(__file__).parent / "data"
 
 
-@pytest.mark.parametrize("version", [1, 2, 3, 4, 5])
+@pytest.mark.parametrize("version", [1, 2, 3, 4, 5, 6])
 def test_older_state_fixtures_load_and_step(version) -> None:
     """States dumped by earlier code (version 1: equal-weight episode sums; version 2; version
     3, dumped before the detection evidence was re-based; version 4, before the group decision
-    fields; version 5, before the operating range) load,
+    fields; version 5, before the operating range; version 6, before the halves' evidence of a
+    detected group) load,
     keep their filters and probabilities, and step on: the stuck right aileron of the fixture's
     flight (6 s, stuck at +12 deg from 2 s) stays the active fault."""
     blob = (DATA / f"stmmae_state_v{version}.bin").read_bytes()
@@ -1391,43 +1392,49 @@ def test_version_3_state_gets_its_applied_inputs_from_the_last_commands() -> Non
     assert json.loads(stmmae.dump_state(state))["version"] == 3
 
 
-def test_kind_value_is_conditioned_on_an_active_stuck_twin() -> None:
-    """``kind_value``: two halves freed together by one filter whose posterior correlates their
-    deflection estimates at -0.9 (only the sum well determined). The first half is in fault,
-    judged stuck at 5 deg; its estimate swings with the second half's deflection (the leak),
-    the second half's estimate carries the opposite. The value recorded for the second half is
-    its estimate conditioned on the first being at its stuck position (``x_h + P_ha / P_aa
-    (pos - x_a)``); unchanged when the two surfaces' effects are not collinear, when the first
-    half's kind is not stuck, or with the option off."""
+def test_kind_value_is_conditioned_on_its_twins_known_position() -> None:
+    """``kind_value``: surface 0 is freed alone by filter 1 and with its twin, surface 1, by
+    filter 0, whose posterior correlates the two deflection estimates at -0.9 (only the sum
+    well determined). Filter 0 splits the fault between the two halves (the leak). The value
+    recorded for surface 0 is the probability-weighted mean of filter 1's estimate and filter
+    0's estimate conditioned on the twin's known position (``x_h + P_ha / P_aa (pos - x_a)``):
+    its stuck position while it is in fault and judged stuck, its command while it is not in
+    fault. Plain estimate when the twin's kind is not stuck, without a twin, or with the option
+    off."""
     config = stmmae.parse_config({})
     cfg = config.kernel_vector.copy()
     n = 2  # base states before the deflection slots
-    slot_surface = np.array([[0, 1], [2, -1]], dtype=np.int64)  # filter 0 frees 0 and 1
-    ps = np.zeros((2, n + 2, n + 2))
-    for f in range(2):
+    slot_surface = np.array([[0, 1], [0, -1], [2, -1]], dtype=np.int64)
+    ps = np.zeros((3, n + 2, n + 2))
+    for f in range(3):
         ps[f] = np.eye(n + 2)
     ps[0, n, n + 1] = ps[0, n + 1, n] = -0.9
-    twins = np.eye(3)
-    twins[0, 1] = twins[1, 0] = 0.99
+    probs = np.array([0.75, 0.25, 0.0])
     dec = np.zeros((3, kern.D_LEN))
     dec[1, kern.D_ACTIVE] = 1.0
     dec[1, kern.D_KIND] = kern.KIND_STUCK
     dec[1, kern.D_EP_SUM] = math.radians(5.0)
     dec[1, kern.D_EP_N] = 1.0
-    true_def, leak = math.radians(-3.0), math.radians(2.5)
-    defl = np.array([true_def - leak, math.radians(5.0) + leak, 0.0])
-    got = kern.kind_value(cfg, dec, slot_surface, ps, n, 0, defl, twins)
-    assert got == pytest.approx(true_def - 0.1 * leak)
-    # a surface no filter frees with the stuck one: unchanged
-    assert kern.kind_value(cfg, dec, slot_surface, ps, n, 2, defl, twins) == defl[2]
-    apart = twins.copy()  # surface 0's effects are closer to surface 2's than to 1's
-    apart[0, 2] = apart[2, 0] = 0.995
-    assert kern.kind_value(cfg, dec, slot_surface, ps, n, 0, defl, apart) == defl[0]
+    true_def, leak, single = math.radians(-3.0), math.radians(2.5), math.radians(-2.0)
+    xs = np.zeros((3, n + 2))
+    xs[0, n], xs[0, n + 1] = true_def - leak, math.radians(5.0) + leak
+    xs[1, n] = single
+    defl = np.array([0.75 * xs[0, n] + 0.25 * single, xs[0, n + 1], 0.0])  # as the bank blends
+    args = (slot_surface, xs, ps, probs, n, 0, defl)
+    got = kern.kind_value(cfg, dec, *args, 1, math.radians(-1.0))
+    assert got == pytest.approx(0.75 * (true_def - 0.1 * leak) + 0.25 * single)
+    # the twin not in fault: conditioned on its command instead
+    free = dec.copy()
+    free[1, kern.D_ACTIVE] = 0.0
+    cmd = math.radians(5.0)
+    assert kern.kind_value(cfg, free, *args, 1, cmd) == pytest.approx(got)
+    assert kern.kind_value(cfg, free, *args, 1, cmd + 0.01) == pytest.approx(got - 0.75 * 0.009)
     osc = dec.copy()
     osc[1, kern.D_KIND] = kern.KIND_OSCILLATING
-    assert kern.kind_value(cfg, osc, slot_surface, ps, n, 0, defl, twins) == defl[0]
+    assert kern.kind_value(cfg, osc, *args, 1, cmd) == defl[0]
+    assert kern.kind_value(cfg, dec, *args, -1, math.nan) == defl[0]
     off = stmmae.parse_config({"fault_kind_twin_correction": False}).kernel_vector
-    assert kern.kind_value(off, dec, slot_surface, ps, n, 0, defl, twins) == defl[0]
+    assert kern.kind_value(off, dec, *args, 1, cmd) == defl[0]
 
 
 def test_collinearity_of_the_reference_model_separates_the_split_halves() -> None:
@@ -1541,6 +1548,56 @@ def test_group_decision_detects_isolates_and_clears() -> None:
     ]
 
 
+def test_half_evidence_is_summed_while_the_group_is_detected() -> None:
+    """``add_half_evidence`` sums the first half's single-filter log-likelihood less its
+    twin's while on, adds nothing for a sample where either update failed and restarts at 0
+    when off (or when the group is reset); ``half_odds`` turns the sum into either half's
+    odds."""
+    gdec = _group_fields()
+    ll = np.array([0.0, -1.0, -3.0])  # the no-fault filter, half 0 alone, half 1 alone
+    for _ in range(3):
+        kern.add_half_evidence(gdec, ll, 0, 1, True)
+    assert gdec[0, kern.G_HALF_LLR] == pytest.approx(6.0)
+    assert kern.half_odds(gdec, 0, 0) == pytest.approx(1.0 / (1.0 + math.exp(-6.0)))
+    assert kern.half_odds(gdec, 0, 1) == pytest.approx(1.0 / (1.0 + math.exp(6.0)))
+    kern.add_half_evidence(gdec, np.array([0.0, -np.inf, -3.0]), 0, 1, True)
+    assert gdec[0, kern.G_HALF_LLR] == pytest.approx(6.0)
+    gdec[0, kern.G_HALF_LLR] = 1e6  # far beyond exp's range: the odds saturate
+    assert kern.half_odds(gdec, 0, 0) == 1.0 and kern.half_odds(gdec, 0, 1) < 1e-300
+    kern.add_half_evidence(gdec, ll, 0, 1, False)
+    assert gdec[0, kern.G_HALF_LLR] == 0.0
+    gdec[0, kern.G_HALF_LLR] = 2.0
+    kern.reset_group(gdec, 0)
+    assert gdec[0, kern.G_HALF_LLR] == 0.0
+
+
+def test_a_fast_oscillation_of_a_half_is_named_on_its_evidence_against_its_twin() -> None:
+    """The left aileron runs a square wave of +-4 deg about 2.5 deg with a period of 0.5 s
+    from 4 s. The filter freeing both halves follows it better than the left half's own
+    filter, so it holds nearly all the probability and both single filters stay near their
+    floor, where their odds say little: without the summed evidence only the group is raised.
+    With it, the left half is named within a second of the onset, and no other surface."""
+    fault = SurfaceFault(
+        "aileron_left", 4.0, 20.0, "square", center_deg=2.5, amplitude_deg=4.0, period_s=0.5
+    )
+    t, ch, _ = simulate_flight(14.0, faults=(fault,), seed=1)
+    off = stmmae.parse_config({"group_half_evidence": False})
+    _, samples, _, events_off, _ = run(off, t, ch)
+    assert [e.detail["component"] for e in events_off if e.kind == "fault_detected"] == ["aileron"]
+    span = (t > 4.5) & (t < 8.0)
+    assert np.median(samples["prob_aileron_left+aileron_right"][span]) > 0.9
+    for half in ("aileron_left", "aileron_right"):  # the floor is 0.1 %
+        assert np.median(samples[f"prob_{half}"][span]) < 0.01
+    config = stmmae.parse_config({})
+    _, _, _, events, _ = run(config, t, ch)
+    detected = [e for e in events if e.kind == "fault_detected"]
+    assert [e.detail["component"] for e in detected] == ["aileron", "aileron_left"]
+    assert 4.0 < detected[0].t_s < detected[1].t_s < 5.0
+    # the sum is carried in the state: batches split inside the group's episode give the same
+    split = [int(np.searchsorted(t, x)) for x in (detected[0].t_s + 0.05, detected[1].t_s - 0.2)]
+    assert run(config, t, ch, splits=split)[3] == events
+
+
 def test_a_group_is_detected_only_within_its_onset_window() -> None:
     """A group whose probability rose above the onset level longer than
     ``group_onset_window_s`` ago, without falling below the clearance level since, is not
@@ -1573,8 +1630,9 @@ def test_a_split_surface_fault_is_detected_as_its_group_before_the_half_is_isola
     """The right aileron stuck at +12 deg: "aileron_left or aileron_right" is raised before the
     data tell the halves apart, the status says so, and the right half's own detection ends
     the group's episode. The group stage itself changes no detection of a single surface:
-    with the half's odds level at the detection level, the surface events are the same as
-    with the stage off; the default level (0.99) delays the half's naming."""
+    with the half's odds level at the detection level and without the halves' summed
+    evidence, the surface events are the same as with the stage off; the default level (0.99)
+    delays the half's naming."""
     t, ch, _ = flight
     config = stmmae.parse_config({})
     _, _, _, events, _ = run(config, t, ch)
@@ -1605,7 +1663,9 @@ def test_a_split_surface_fault_is_detected_as_its_group_before_the_half_is_isola
     assert [f["component"] for f in out.diagnosis.detail["active_faults"]] == ["aileron"]
     off = stmmae.parse_config({"group_detection": False})
     _, _, _, events_off, _ = run(off, t, ch)
-    plain = stmmae.parse_config({"group_isolation_odds": config.detect_probability})
+    plain = stmmae.parse_config(
+        {"group_isolation_odds": config.detect_probability, "group_half_evidence": False}
+    )
     _, _, _, events_plain, _ = run(plain, t, ch)
     assert events_off == [e for e in events_plain if e.detail["component"] != "aileron"]
     own_off = next(e for e in events_off if e.kind == "fault_detected")
@@ -1639,10 +1699,35 @@ def test_version_5_state_gets_a_fresh_operating_range() -> None:
     parts = stmmae.state_parts(config, state)
     assert np.isnan(parts.operating).all() and parts.outside_samples.tolist() == [0.0]
     lay = stmmae.layout(config)
+    vec = stmmae._current_vector(config, state)
+    np.testing.assert_array_equal(vec[: lay.groups], state.vector[: lay.groups])
     np.testing.assert_array_equal(
-        stmmae._current_vector(config, state)[: lay.operating], state.vector
-    )
+        parts.groups[:, :6], state.vector[lay.groups :].reshape(lay.s, 6)
+    )  # the six group fields of version 5 (the seventh, version 7's, starts at 0)
+    np.testing.assert_array_equal(parts.groups[:, kern.G_HALF_LLR], 0.0)
     assert json.loads(stmmae.dump_state(state))["version"] == 5
+
+
+def test_version_6_state_gets_a_zero_half_evidence() -> None:
+    """Version 6 -> 7 inserts the group field ``G_HALF_LLR`` (0, as at a group's detection)
+    after the six group fields of each surface; every other part is kept, and the state is
+    written back as version 6 until it is stepped."""
+    blob = (DATA / "stmmae_state_v6.bin").read_bytes()
+    config = stmmae.parse_config({"health_window_samples": 250})
+    state = stmmae.load_state(blob)
+    assert state.layout_version == 6
+    lay = stmmae.layout(config)
+    old_end = lay.groups + lay.s * 6
+    assert state.vector.shape == (old_end + lay.length - lay.operating,)
+    parts = stmmae.state_parts(config, state)
+    np.testing.assert_array_equal(parts.groups[:, kern.G_HALF_LLR], 0.0)
+    np.testing.assert_array_equal(
+        parts.groups[:, :6], state.vector[lay.groups : old_end].reshape(lay.s, 6)
+    )
+    vec = stmmae._current_vector(config, state)
+    np.testing.assert_array_equal(vec[: lay.groups], state.vector[: lay.groups])
+    np.testing.assert_array_equal(vec[lay.operating :], state.vector[old_end:])
+    assert json.loads(stmmae.dump_state(state))["version"] == 6
 
 
 # ----------------------------------------------------------------------------- operating range
@@ -1744,14 +1829,26 @@ def test_no_fault_is_detected_once_the_aircraft_departs_from_controlled_flight()
     rad, pitch rate about -1.4 rad/s), far from the level trim the model is linearized at. Once
     the smoothed angle of attack and pitch rate leave the model's range no further detection is
     made, and the status names both beside the fault. With the airspeed and sideslip bounds
-    alone a half is named in the loop."""
+    alone a half is named in the loop. (The halves' summed evidence against each other is off
+    here, so that the group stays unresolved into the loop; with it, the default, both halves
+    are named within 0.7 s of the onset, before the loop, and classified stuck.)"""
     faults = tuple(
         SurfaceFault(s, 10.0, 40.0, "stuck", position_deg=20.0)
         for s in ("elevator_left", "elevator_right")
     )
     t, ch, _ = simulate_flight(20.0, faults=faults, seed=3)
     batch = Batch(t_s=t, channels=ch)
-    config = stmmae.parse_config({"health_window_samples": 1000})
+    default = stmmae.parse_config({})
+    _, out_default = stmmae.step(default, stmmae.initial_state(default), batch)
+    named = {
+        e.detail["component"]: e.t_s
+        for e in out_default.events
+        if e.kind == "fault_detected" and e.detail["component"] != "elevator"
+    }
+    assert set(named) == {"elevator_left", "elevator_right"} and max(named.values()) < 10.7
+    kinds = {e.detail["fault_kind"] for e in out_default.events if e.kind == "fault_classified"}
+    assert kinds == {"stuck"}
+    config = stmmae.parse_config({"health_window_samples": 1000, "group_half_evidence": False})
     _, out = stmmae.step(config, stmmae.initial_state(config), batch)
     detected = [(e.t_s, e.detail["component"]) for e in out.events if e.kind == "fault_detected"]
     assert len(detected) == 1 and detected[0][1] == "elevator" and detected[0][0] < 10.5
@@ -1762,7 +1859,11 @@ def test_no_fault_is_detected_once_the_aircraft_departs_from_controlled_flight()
     model = reference_model()
     kept = {k: model["operating_range"][k] for k in ("airspeed", "beta")}
     config_off = stmmae.parse_config(
-        {"health_window_samples": 1000, "model": {**model, "operating_range": kept}}
+        {
+            "health_window_samples": 1000,
+            "group_half_evidence": False,
+            "model": {**model, "operating_range": kept},
+        }
     )
     _, out_off = stmmae.step(config_off, stmmae.initial_state(config_off), batch)
     halves = [
