@@ -1437,6 +1437,27 @@ def test_kind_value_is_conditioned_on_its_twins_known_position() -> None:
     assert kern.kind_value(off, dec, *args, 1, cmd) == defl[0]
 
 
+def test_a_fast_aileron_oscillation_is_judged_with_its_healthy_twin_at_its_command() -> None:
+    """A right aileron sine of +-5 deg with a period of 0.75 s (a swing, 2 std, of 7.1 deg):
+    the filter freeing both halves follows it and splits it between them, so the plain
+    estimate of the right half shows about half the swing and is judged stuck; conditioned on
+    the healthy left half following its command, the swing is about the true one and the
+    kind oscillating."""
+    fault = SurfaceFault(
+        "aileron_right", 10.0, 25.0, "sine", center_deg=0.0, amplitude_deg=5.0, period_s=0.75
+    )
+    t, ch, _ = simulate_flight(27.0, faults=(fault,), seed=1)
+    judged = {}
+    for on in (True, False):
+        config = stmmae.parse_config({"fault_kind_twin_correction": on})
+        events = run(config, t, ch)[3]
+        (classified,) = [e for e in events if e.kind == "fault_classified"]
+        assert classified.detail["component"] == "aileron_right"
+        judged[on] = (classified.detail["fault_kind"], classified.detail["deflection_swing_deg"])
+    assert judged[True][0] == "oscillating" and 5.5 < judged[True][1] < 8.5
+    assert judged[False][0] == "stuck" and judged[False][1] < 4.5
+
+
 def test_collinearity_of_the_reference_model_separates_the_split_halves() -> None:
     """The halves of the aileron and of the elevator are the only twins (each other's most
     collinear surface), whose kind histories are conditioned on each other's stuck position;
