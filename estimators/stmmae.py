@@ -23,10 +23,14 @@ the active faults" summed over the run above ``min_log_likelihood_ratio``, held 
 (``hold_while_active_s`` while another surface is in fault, ``hold_while_twin_active_s`` while
 its twin is), and none is made outside the model's operating range or while a detected fault
 ends (``hold_while_fault_ends``); the fault kind (stuck or oscillating) is judged from the
-autocorrelation of the deflection history over ``fault_kind_window_s`` (samples with the surface's probability at or
-below ``onset_probability`` skipped; cut before the onset of a fault detected during it,
-``fault_kind_cut``); clearance needs the surface back at its
-command with a low probability for ``clear_hold_s``.
+autocorrelation of the deflection history over ``fault_kind_window_s`` (samples with the
+surface's probability at or below ``onset_probability`` skipped; cut before the onset of a
+fault detected during it, ``fault_kind_cut``; the estimate conditioned on a twin half's known
+position, ``fault_kind_twin_correction``); clearance needs the surface back at its command with
+a low probability for ``clear_hold_s``. The two halves of a split surface are also detected
+together as their group (``group_detection``); while it is detected, a half is named on the
+stronger odds ``group_isolation_odds``, taken also from the two halves' single-fault filters'
+log-likelihoods summed since the detection (``group_half_evidence``).
 
 Equations, choices where the seed is silent, the configuration reference and what was measured:
 ``docs/methods-stmmae.md``.
