@@ -945,8 +945,9 @@ def _decide(
     probability of being the only new fault against its strongest competitor's) above
     ``iso_level`` (``CFG_DETECT_P``, ``CFG_GROUP_ISO`` while the surface's group is detected and
     no other surface is in fault, infinite while outside the operating range or while a fault
-    ends), the smoothed deflection estimate more than ``CFG_MIN_ERR`` from the command, and at the end the log-likelihood ratio between the
-    nested families (:func:`_relevant_loglik`) summed over the run at least ``CFG_MIN_LLR``.
+    ends), the smoothed deflection estimate more than ``CFG_MIN_ERR`` from the command, and at
+    the end the log-likelihood ratio between the nested families (:func:`_relevant_loglik`)
+    summed over the run at least ``CFG_MIN_LLR``.
     ``kval`` is the value the kind history records (``defl``, or the estimate conditioned on
     its twin's known position, :func:`kind_value`).
     Clearance (hysteresis): the smoothed difference between deflection estimate
