@@ -85,7 +85,8 @@ CFG_HOLD_ENDING = 34  # 1: no new detection while a detected fault is ending (fa
 CFG_HOLD_TWIN_S = 35  # detection hold time of a surface while its twin is in fault
 CFG_GROUP_HALF_EVIDENCE = 36  # 1: a half of a detected group is also named on the summed
 # log-likelihood of its single-fault filter against its twin's (G_HALF_LLR)
-CFG_LEN = 37
+CFG_KIND_DEFER = 37  # 1: a kind span's end waits while another fault's onset in it is open
+CFG_LEN = 38
 COLLINEAR_STEPS = 20  # model steps over which a deflection's effect on the measurements is taken
 
 KIND_BLOCK_S = 0.05  # the kind test reads the deflection estimate as means over 0.05 s blocks
@@ -935,6 +936,7 @@ def _decide(
     llr: float,
     hold: float,
     kval: float,
+    other_onset: float,
 ) -> int:
     """Detection, classification and clearance of one surface at one sample; returns 0 or
     ``EV_DETECTED``/``EV_CLASSIFIED``/``EV_CLEARED`` (the caller writes the event from
@@ -992,18 +994,29 @@ def _decide(
         return 0
     code = 0
     if dec[h, D_KIND] == KIND_PENDING and dec[h, D_BLK_IDX] < KIND_BLOCKS:
-        if t - dec[h, D_KIND_T0] < cfg[CFG_KIND_WINDOW_S]:
+        span = t - dec[h, D_KIND_T0]
+        if span < cfg[CFG_KIND_WINDOW_S]:
             # the estimate is the probability-weighted mean of the filters that free the
             # surface: while they hold less than the onset level of the probability, the data
             # reject them and their estimate says nothing of the surface (a gap: the block
             # history repeats the last block's mean)
             if prob > cfg[CFG_ONSET_P]:
                 _kind_add(dec, kbuf, h, t, kval, defl_var)
-        else:
+        elif not (
+            cfg[CFG_KIND_DEFER] != 0.0
+            and cfg[CFG_KIND_CUT] != 0.0
+            and dec[h, D_KIND_T0] < other_onset
+            and other_onset - KIND_CUT_MARGIN_S < dec[h, D_KIND_T0] + cfg[CFG_KIND_WINDOW_S]
+            and span < KIND_BLOCKS * KIND_BLOCK_S
+        ):
             _kind_pad(cfg, dec, kbuf, h, t)
             _judge_kind(cfg, dec, kbuf, h)
             dec[h, D_BLK_IDX] = KIND_BLOCKS  # span closed
             code = EV_CLASSIFIED
+        # else: another surface's (or group's) onset lies inside the span and it is not
+        # detected yet: the judgment waits, the history as it stood at the span's end (up to
+        # the history's capacity), for that detection to cut the span before its onset
+        # (:func:`cut_kind_span`); without it the kind is judged as it would have been
     back = abs(dec[h, D_CSMOOTH]) < cfg[CFG_CLEAR_DEFL]
     if cfg[CFG_REBASE] == 0.0:
         back = back and prob < cfg[CFG_CLEAR_P]
@@ -1741,6 +1754,17 @@ def _bank_kernel(
         ending = cfg[CFG_HOLD_ENDING] != 0.0 and fault_ending(
             cfg, dec, pm, dmean, applied, surface_inputs
         )
+        # the latest open onset of a surface or a group not in fault (-inf: none)
+        other_onset = -np.inf
+        for g in range(ns):
+            if dec[g, D_ACTIVE] == 1.0:
+                continue
+            if math.isfinite(dec[g, D_ONSET_T]):
+                other_onset = max(other_onset, dec[g, D_ONSET_T])
+            b = twin_of[g]
+            if groups_on and b > g and dec[b, D_ACTIVE] != 1.0 and gdec[g, G_ACTIVE] != 1.0:
+                if math.isfinite(gdec[g, G_ONSET_T]):
+                    other_onset = max(other_onset, gdec[g, G_ONSET_T])
         for h in range(ns):
             defl = dmean[h]
             samples[row, k] = defl
@@ -1796,6 +1820,7 @@ def _bank_kernel(
                     twin_of[h],
                     applied[surface_inputs[twin_of[h]]] if twin_of[h] >= 0 else np.nan,
                 ),
+                other_onset,
             )
             if code != 0:
                 events = _write_event(events, n_ev, tk, float(code), dec, h)
@@ -1822,8 +1847,13 @@ def _bank_kernel(
                 for g in range(ns):
                     if dec[g, D_ACTIVE] != 1.0 or dec[g, D_DETECTED_T] != tk:
                         continue
-                    t_cut = dec[g, D_ONSET_T] - KIND_CUT_MARGIN_S
                     for h in range(ns):
+                        # a span kept open past its end (CFG_KIND_DEFER) is cut at that end at
+                        # the latest: the wait only shortens a history
+                        t_cut = min(
+                            dec[g, D_ONSET_T] - KIND_CUT_MARGIN_S,
+                            dec[h, D_KIND_T0] + cfg[CFG_KIND_WINDOW_S],
+                        )
                         if (
                             h != g
                             and dec[h, D_ACTIVE] == 1.0

@@ -737,6 +737,7 @@ def _decide_steps(config, probs, defl_deg, cmd_deg, llrs, dt, others_active, def
             llr,
             config.hold_while_active_s if others_active else config.hold_s,
             math.radians(d),  # the kind history's value: the estimate itself
+            -math.inf,  # no other onset open
         )
         if code:
             codes.append((round(k * dt, 2), code))
@@ -799,6 +800,7 @@ def test_holds_count_samples_whatever_the_rounding_of_the_sample_times() -> None
                 2.0 if faulty else 0.0,
                 config.hold_s,
                 math.radians(8.0),
+                -math.inf,
             )
             if code == kern.EV_DETECTED:
                 detected = k
@@ -1096,6 +1098,49 @@ def test_a_second_detection_cuts_the_first_faults_kind_span() -> None:
     corr_cut = rudder.detail["deflection_autocorrelation_min"]
     corr_uncut = rudder_uncut.detail["deflection_autocorrelation_min"]
     assert corr_cut > -0.35 and corr_uncut < corr_cut - 0.1
+
+
+def test_a_kind_span_waits_for_a_detection_whose_onset_lies_inside_it() -> None:
+    """Left aileron oscillating from 3 s, right aileron stuck from 8.05 s: the right half's
+    onset (8.17 s) falls inside the left half's kind span, which ends at 8.5 s, before the
+    right half is detected (8.54 s, the twin's longer hold). The span's end waits for that
+    detection, which cuts it before the onset: oscillating, on the clean history. Without the
+    wait the kind is judged at 8.5 s on a history into which the stuck twin has leaked (stuck,
+    a shallow autocorrelation). The wait is carried in the state: a batch split inside it
+    gives the same events."""
+    faults = (
+        SurfaceFault(
+            "aileron_left", 3.0, 30.0, "sine", center_deg=0.0, amplitude_deg=5.0, period_s=1.2
+        ),
+        SurfaceFault("aileron_right", 8.05, 30.0, "stuck", position_deg=-10.0),
+    )
+    t, ch, _ = simulate_flight(11.0, faults=faults, seed=5)
+    found = {}
+    for wait in (True, False):
+        config = stmmae.parse_config({"fault_kind_defer": wait})
+        _, _, _, events, _ = run(config, t, ch)
+        det = {e.detail["component"]: e.t_s for e in events if e.kind == "fault_detected"}
+        cls = {e.detail["component"]: e for e in events if e.kind == "fault_classified"}
+        found[wait] = (det, cls["aileron_left"])
+        if wait:
+            split = int(np.searchsorted(t, 8.52))
+            _, _, _, split_events, _ = run(config, t, ch, splits=(split,))
+            assert [(e.t_s, e.kind, e.detail) for e in split_events] == [
+                (e.t_s, e.kind, e.detail) for e in events
+            ]
+    det, left = found[True]
+    onset_right = next(
+        e for e in events if e.kind == "fault_detected" and e.detail["component"] == "aileron_right"
+    ).detail["onset_s"]
+    det_off, left_off = found[False]
+    assert left.detail["onset_s"] < onset_right < left_off.t_s  # inside the span
+    assert left.t_s == det["aileron_right"]
+    assert left.detail["fault_kind"] == "oscillating"
+    assert det_off["aileron_right"] == det["aileron_right"]
+    assert left_off.t_s < det_off["aileron_right"]
+    assert left_off.detail["fault_kind"] == "stuck"
+    corr, corr_off = (c.detail["deflection_autocorrelation_min"] for c in (left, left_off))
+    assert corr < -0.9 and corr_off > corr + 0.3
 
 
 ELEVATOR_FAULTS = {
