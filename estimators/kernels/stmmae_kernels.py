@@ -951,7 +951,9 @@ def _decide(
     the end the log-likelihood ratio between the nested families (:func:`_relevant_loglik`)
     summed over the run at least ``CFG_MIN_LLR``.
     ``kval`` is the value the kind history records (``defl``, or the estimate conditioned on
-    its twin's known position, :func:`kind_value`).
+    its twin's known position, :func:`kind_value`); ``other_onset`` the latest open onset of a
+    surface or group not in fault (-inf: none), for which the end of the kind span waits when
+    it lies inside the span (``CFG_KIND_DEFER``).
     Clearance (hysteresis): the smoothed difference between deflection estimate
     and command inside ``CFG_CLEAR_DEFL`` (the surface follows its command again) and, unless
     the bank is rebased (the probability then no longer compares with the command), the
@@ -1762,9 +1764,14 @@ def _bank_kernel(
             if math.isfinite(dec[g, D_ONSET_T]):
                 other_onset = max(other_onset, dec[g, D_ONSET_T])
             b = twin_of[g]
-            if groups_on and b > g and dec[b, D_ACTIVE] != 1.0 and gdec[g, G_ACTIVE] != 1.0:
-                if math.isfinite(gdec[g, G_ONSET_T]):
-                    other_onset = max(other_onset, gdec[g, G_ONSET_T])
+            if (
+                groups_on
+                and b > g
+                and dec[b, D_ACTIVE] != 1.0
+                and gdec[g, G_ACTIVE] != 1.0
+                and math.isfinite(gdec[g, G_ONSET_T])
+            ):
+                other_onset = max(other_onset, gdec[g, G_ONSET_T])
         for h in range(ns):
             defl = dmean[h]
             samples[row, k] = defl
