@@ -26,7 +26,7 @@ ends (``hold_while_fault_ends``); the fault kind (stuck or oscillating) is judge
 autocorrelation of the deflection history over ``fault_kind_window_s`` (samples with the
 surface's probability at or below ``onset_probability`` skipped; cut before the onset of a
 fault detected during it, ``fault_kind_cut``, its end waiting for the detection of a fault
-whose onset lies inside it, ``fault_kind_defer``; the estimate conditioned on a twin half's known
+whose onset lies inside it, ``fault_kind_wait_s``; the estimate conditioned on a twin half's known
 position, ``fault_kind_twin_correction``); clearance needs the surface back at its command with
 a low probability for ``clear_hold_s``. The two halves of a split surface are also detected
 together as their group (``group_detection``); while it is detected, a half is named on the
@@ -363,12 +363,14 @@ class StmmaeConfig(EstimatorConfigModel):
         "its onset (less 0.5 s): their kind is judged on the history before the new fault "
         "began, when at least 1 s of it is left",
     )
-    fault_kind_defer: bool = Field(
-        True,
-        description="the end of a fault's kind span waits while another surface or group "
-        "whose onset lies inside the span has not been detected yet (at most until the "
-        "history holds 10 s): its detection then cuts the span (fault_kind_cut) instead of "
-        "the kind being judged on a history into which that fault's effect has leaked",
+    fault_kind_wait_s: Number = Field(
+        1.0,
+        ge=0.0,
+        le=kern.KIND_BLOCKS * kern.KIND_BLOCK_S,
+        description="longest wait of the end of a fault's kind span for the detection of a "
+        "surface or group whose onset lies inside the span, s (with fault_kind_cut; 0: no "
+        "wait): that detection then cuts the span instead of the kind being judged on a "
+        "history into which the other fault's effect has leaked",
     )
     fault_kind_twin_correction: bool = Field(
         True,
@@ -658,7 +660,7 @@ def _kernel_vector(config: StmmaeConfig) -> FloatArray:
     cfg[kern.CFG_KIND_WINDOW_S] = config.fault_kind_window_s
     cfg[kern.CFG_REBASE] = 1.0 if config.rebase_on_detection else 0.0
     cfg[kern.CFG_KIND_CUT] = 1.0 if config.fault_kind_cut else 0.0
-    cfg[kern.CFG_KIND_DEFER] = 1.0 if config.fault_kind_defer else 0.0
+    cfg[kern.CFG_KIND_WAIT_S] = config.fault_kind_wait_s
     cfg[kern.CFG_KIND_TWIN] = 1.0 if config.fault_kind_twin_correction else 0.0
     cfg[kern.CFG_GROUP] = 1.0 if config.group_detection else 0.0
     cfg[kern.CFG_GROUP_ISO] = config.group_isolation_odds

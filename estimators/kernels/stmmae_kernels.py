@@ -85,7 +85,7 @@ CFG_HOLD_ENDING = 34  # 1: no new detection while a detected fault is ending (fa
 CFG_HOLD_TWIN_S = 35  # detection hold time of a surface while its twin is in fault
 CFG_GROUP_HALF_EVIDENCE = 36  # 1: a half of a detected group is also named on the summed
 # log-likelihood of its single-fault filter against its twin's (G_HALF_LLR)
-CFG_KIND_DEFER = 37  # 1: a kind span's end waits while another fault's onset in it is open
+CFG_KIND_WAIT_S = 37  # longest wait of a kind span's end for a fault whose onset lies inside it
 CFG_LEN = 38
 COLLINEAR_STEPS = 20  # model steps over which a deflection's effect on the measurements is taken
 
@@ -953,7 +953,7 @@ def _decide(
     ``kval`` is the value the kind history records (``defl``, or the estimate conditioned on
     its twin's known position, :func:`kind_value`); ``other_onset`` the latest open onset of a
     surface or group not in fault (-inf: none), for which the end of the kind span waits when
-    it lies inside the span (``CFG_KIND_DEFER``).
+    it lies inside the span (``CFG_KIND_WAIT_S``).
     Clearance (hysteresis): the smoothed difference between deflection estimate
     and command inside ``CFG_CLEAR_DEFL`` (the surface follows its command again) and, unless
     the bank is rebased (the probability then no longer compares with the command), the
@@ -1005,10 +1005,10 @@ def _decide(
             if prob > cfg[CFG_ONSET_P]:
                 _kind_add(dec, kbuf, h, t, kval, defl_var)
         elif not (
-            cfg[CFG_KIND_DEFER] != 0.0
-            and cfg[CFG_KIND_CUT] != 0.0
+            cfg[CFG_KIND_CUT] != 0.0
             and dec[h, D_KIND_T0] < other_onset
             and other_onset - KIND_CUT_MARGIN_S < dec[h, D_KIND_T0] + cfg[CFG_KIND_WINDOW_S]
+            and span < cfg[CFG_KIND_WINDOW_S] + cfg[CFG_KIND_WAIT_S]
             and span < KIND_BLOCKS * KIND_BLOCK_S
         ):
             _kind_pad(cfg, dec, kbuf, h, t)
@@ -1016,9 +1016,10 @@ def _decide(
             dec[h, D_BLK_IDX] = KIND_BLOCKS  # span closed
             code = EV_CLASSIFIED
         # else: another surface's (or group's) onset lies inside the span and it is not
-        # detected yet: the judgment waits, the history as it stood at the span's end (up to
-        # the history's capacity), for that detection to cut the span before its onset
-        # (:func:`cut_kind_span`); without it the kind is judged as it would have been
+        # detected yet: the judgment waits, the history as it stood at the span's end, up to
+        # CFG_KIND_WAIT_S (and the history's capacity), for that detection to cut the span
+        # before its onset (:func:`cut_kind_span`); without it the kind is judged as it would
+        # have been
     back = abs(dec[h, D_CSMOOTH]) < cfg[CFG_CLEAR_DEFL]
     if cfg[CFG_REBASE] == 0.0:
         back = back and prob < cfg[CFG_CLEAR_P]
@@ -1855,7 +1856,7 @@ def _bank_kernel(
                     if dec[g, D_ACTIVE] != 1.0 or dec[g, D_DETECTED_T] != tk:
                         continue
                     for h in range(ns):
-                        # a span kept open past its end (CFG_KIND_DEFER) is cut at that end at
+                        # a span kept open past its end (CFG_KIND_WAIT_S) is cut at that end at
                         # the latest: the wait only shortens a history
                         t_cut = min(
                             dec[g, D_ONSET_T] - KIND_CUT_MARGIN_S,

@@ -1117,7 +1117,7 @@ def test_a_kind_span_waits_for_a_detection_whose_onset_lies_inside_it() -> None:
     t, ch, _ = simulate_flight(11.0, faults=faults, seed=5)
     found = {}
     for wait in (True, False):
-        config = stmmae.parse_config({"fault_kind_defer": wait})
+        config = stmmae.parse_config({"fault_kind_wait_s": 1.0 if wait else 0.0})
         _, _, _, events, _ = run(config, t, ch)
         det = {e.detail["component"]: e.t_s for e in events if e.kind == "fault_detected"}
         cls = {e.detail["component"]: e for e in events if e.kind == "fault_classified"}
