@@ -25,7 +25,6 @@ judged on, the other faults).
 
 from __future__ import annotations
 
-import argparse
 import sys
 from collections import Counter
 from pathlib import Path
@@ -71,16 +70,9 @@ def context(surface: str, faults: tuple[SurfaceFault, ...], t0: float, t1: float
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--cache", type=Path, default=None, help="directory of simulated flights")
-    ap.add_argument(
-        "--seed-offset",
-        type=int,
-        action="append",
-        default=None,
-        help="a seed offset of validate_stmmae_random.py (repeatable; default 0)",
+    ap = vr.flight_set_parser(
+        __doc__.split("\n")[0], "default 0", 40, "flights per category and offset"
     )
-    ap.add_argument("--flights", type=int, default=40, help="flights per category and offset")
     args = ap.parse_args()
     stmmae.warm_up()
     judged: Counter[str] = Counter()

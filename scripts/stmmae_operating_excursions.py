@@ -16,7 +16,6 @@ controlled flight (``docs/methods-stmmae.md``, "Operating range").
 
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 from pathlib import Path
@@ -34,16 +33,12 @@ BATCH_S = 0.1  # the smoothed values are read after each batch (the time constan
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--cache", type=Path, default=None, help="directory of simulated flights")
-    ap.add_argument(
-        "--seed-offset",
-        type=int,
-        action="append",
-        default=None,
-        help="a seed offset of validate_stmmae_random.py (repeatable; default 200000 and 220000)",
+    ap = vr.flight_set_parser(
+        __doc__.split("\n")[0],
+        "default 200000 and 220000",
+        30,
+        "fault-free flights per offset",
     )
-    ap.add_argument("--flights", type=int, default=30, help="fault-free flights per offset")
     args = ap.parse_args()
     offsets = args.seed_offset or [200000, 220000]
     worst: dict[str, float] = {}

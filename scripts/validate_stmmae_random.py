@@ -554,6 +554,25 @@ def report(
     return lines
 
 
+def flight_set_parser(
+    description: str, offsets_help: str, flights: int, flights_help: str
+) -> argparse.ArgumentParser:
+    """The arguments of the scripts that read this script's flights: ``--cache`` (the directory
+    of simulated flights), ``--seed-offset`` (repeatable) and ``--flights`` (per category and
+    offset)."""
+    ap = argparse.ArgumentParser(description=description)
+    ap.add_argument("--cache", type=Path, default=None, help="directory of simulated flights")
+    ap.add_argument(
+        "--seed-offset",
+        type=int,
+        action="append",
+        default=None,
+        help=f"a seed offset of validate_stmmae_random.py (repeatable; {offsets_help})",
+    )
+    ap.add_argument("--flights", type=int, default=flights, help=flights_help)
+    return ap
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--singles", type=int, default=40)
