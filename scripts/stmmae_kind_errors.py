@@ -87,17 +87,8 @@ def main() -> int:
                 _, out = stmmae.step(
                     config, stmmae.initial_state(config), Batch(t_s=t, channels=ch)
                 )
-                seen: set[tuple[str, float]] = set()
-                for e in out.events:
+                for e in vr.judgments(list(out.events)).values():
                     d = e.detail
-                    if e.kind not in ("fault_classified", "fault_cleared"):
-                        continue
-                    if d.get("fault_kind") in (None, "pending"):
-                        continue
-                    key = (d["component"], d["detected_s"])
-                    if key in seen:
-                        continue
-                    seen.add(key)
                     truth = [
                         f
                         for f in sc.faults
@@ -107,7 +98,7 @@ def main() -> int:
                     if not truth:
                         continue  # a wrong surface's episode: scored by validate_stmmae_random
                     fault = truth[0]
-                    want = "stuck" if fault.kind == "stuck" else "oscillating"
+                    want = vr.true_kind(fault.kind)
                     ctx = context(fault.surface, sc.faults, d["onset_s"], e.t_s)
                     judged[ctx] += 1
                     if d["fault_kind"] == want:

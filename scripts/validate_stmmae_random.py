@@ -192,6 +192,22 @@ def simulate(sc: FlightScenario, cache: Path | None) -> tuple[np.ndarray, dict[s
     return t, ch
 
 
+def judgments(events: list[EstimatorEvent]) -> dict[tuple[str, float | None], EstimatorEvent]:
+    """The event each episode's kind was judged in, keyed by ``(component, detected_s)``: its
+    ``fault_classified`` event, or its ``fault_cleared`` event when it ended before one (the
+    first of them with a kind other than pending)."""
+    judged: dict[tuple[str, float | None], EstimatorEvent] = {}
+    for e in events:
+        if e.kind in ("fault_classified", "fault_cleared") and e.detail["fault_kind"] != "pending":
+            judged.setdefault((e.detail["component"], e.detail["detected_s"]), e)
+    return judged
+
+
+def true_kind(kind: str) -> str:
+    """The kind the bank should report for a generator's fault kind (stuck, square, sine)."""
+    return "stuck" if kind == "stuck" else "oscillating"
+
+
 def run_flight(
     sc: FlightScenario, extra: dict[str, Any] | None = None, cache: Path | None = None
 ) -> FlightRecord:
@@ -208,12 +224,7 @@ def run_flight(
     def covers(e: EstimatorEvent, surface: str) -> bool:
         return surface in e.detail["candidates"]
 
-    judged: dict[tuple[str, float | None], str] = {}
-    for e in events:
-        if e.kind in ("fault_classified", "fault_cleared") and e.detail["fault_kind"] != "pending":
-            judged.setdefault(
-                (e.detail["component"], e.detail["detected_s"]), e.detail["fault_kind"]
-            )
+    judged = judgments(events)
     for e in dets:
         active = [f for f in sc.faults if f.start_s <= e.t_s <= f.end_s + GRACE_S]
         if any(covers(e, f.surface) for f in active):
@@ -268,7 +279,8 @@ def run_flight(
                 and f.start_s <= e.t_s <= f.end_s
             ]
             fr.redetections = max(0, len(cover) - 1 - len(handed))
-            fr.reported_kind = judged.get((f.surface, mine[0].detail["detected_s"]))
+            kind_event = judged.get((f.surface, mine[0].detail["detected_s"]))
+            fr.reported_kind = None if kind_event is None else kind_event.detail["fault_kind"]
         rec.faults.append(fr)
     if sc.category == "fault_free":
         rec.gate_margins = _gate_margins(config, t, ch, out)
@@ -309,8 +321,7 @@ def _delays(recs: list[FaultRecord], isolation: bool = False) -> str:
 
 
 def _kind_ok(r: FaultRecord) -> bool:
-    truth = "stuck" if r.kind == "stuck" else "oscillating"
-    return r.reported_kind == truth
+    return r.reported_kind == true_kind(r.kind)
 
 
 def _row(label: str, recs: list[FaultRecord]) -> str:
