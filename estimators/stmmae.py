@@ -656,6 +656,7 @@ def _kernel_vector(config: StmmaeConfig) -> FloatArray:
     cfg[kern.CFG_SMOOTH_S] = config.deflection_smoothing_s
     cfg[kern.CFG_MIN_ERR] = math.radians(config.min_deflection_error_deg)
     cfg[kern.CFG_MIN_ERR_STD] = config.min_deflection_error_std
+    cfg[kern.CFG_DEFL_VAR_CAP] = math.radians(config.deflection_initial_std_deg) ** 2
     cfg[kern.CFG_LIMIT] = math.radians(config.deflection_limit_deg)
     cfg[kern.CFG_KIND_WINDOW_S] = config.fault_kind_window_s
     cfg[kern.CFG_REBASE] = 1.0 if config.rebase_on_detection else 0.0

@@ -86,7 +86,8 @@ CFG_HOLD_TWIN_S = 35  # detection hold time of a surface while its twin is in fa
 CFG_GROUP_HALF_EVIDENCE = 36  # 1: a half of a detected group is also named on the summed
 # log-likelihood of its single-fault filter against its twin's (G_HALF_LLR)
 CFG_KIND_WAIT_S = 37  # longest wait of a kind span's end for a fault whose onset lies inside it
-CFG_LEN = 38
+CFG_DEFL_VAR_CAP = 38  # largest posterior variance of a deflection a filter contributes (rad^2)
+CFG_LEN = 39
 COLLINEAR_STEPS = 20  # model steps over which a deflection's effect on the measurements is taken
 
 KIND_BLOCK_S = 0.05  # the kind test reads the deflection estimate as means over 0.05 s blocks
@@ -937,6 +938,7 @@ def _decide(
     hold: float,
     kval: float,
     other_onset: float,
+    outside: bool,
 ) -> int:
     """Detection, classification and clearance of one surface at one sample; returns 0 or
     ``EV_DETECTED``/``EV_CLASSIFIED``/``EV_CLEARED`` (the caller writes the event from
@@ -1002,7 +1004,7 @@ def _decide(
             # surface: while they hold less than the onset level of the probability, the data
             # reject them and their estimate says nothing of the surface (a gap: the block
             # history repeats the last block's mean)
-            if prob > cfg[CFG_ONSET_P]:
+            if prob > cfg[CFG_ONSET_P] and not outside:
                 _kind_add(dec, kbuf, h, t, kval, defl_var)
         elif not (
             cfg[CFG_KIND_CUT] != 0.0
@@ -1607,6 +1609,7 @@ def _bank_kernel(
     wacc = st[lay_win : lay_win + W_LEN]
     applied = st[lay_win + W_LEN : lay_win + W_LEN + m]
     servo_a = cfg[CFG_SERVO_A]
+    var_cap = cfg[CFG_DEFL_VAR_CAP]
     is_surface = np.zeros(m, dtype=np.bool_)
     for g in range(ns):
         is_surface[surface_inputs[g]] = True
@@ -1727,7 +1730,10 @@ def _bank_kernel(
                 if slot >= 0:
                     pm[g] += probs[f]
                     dsum[g] += probs[f] * xs[f, slot]
-                    vsum[g] += probs[f] * ps[f, slot, slot]
+                    # a filter the data reject (at its probability floor) can have a deflection
+                    # variance far beyond its prior, which would swamp the variance of those
+                    # that hold the mass: it adds at most the prior's
+                    vsum[g] += probs[f] * min(ps[f, slot, slot], var_cap)
                     if ll[f] > ll_in[g] or best_in[g] < 0:
                         ll_in[g] = ll[f]
                         best_in[g] = f
@@ -1829,6 +1835,7 @@ def _bank_kernel(
                     applied[surface_inputs[twin_of[h]]] if twin_of[h] >= 0 else np.nan,
                 ),
                 other_onset,
+                outside,
             )
             if code != 0:
                 events = _write_event(events, n_ev, tk, float(code), dec, h)
@@ -1914,7 +1921,10 @@ def _bank_kernel(
                     llr_g,
                     deflected,
                     back,
-                    outside or ending,
+                    # while as many surfaces are in fault as a hypothesis frees, each filter
+                    # freeing a half holds a surface in fault at its command: the group's
+                    # evidence is then evidence against a detected fault, not for a new one
+                    outside or ending or n_active_after >= n_slots,
                     n_active_after > 0,
                 )
                 if code == EV_GROUP_ISOLATED:

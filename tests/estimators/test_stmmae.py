@@ -738,6 +738,7 @@ def _decide_steps(config, probs, defl_deg, cmd_deg, llrs, dt, others_active, def
             config.hold_while_active_s if others_active else config.hold_s,
             math.radians(d),  # the kind history's value: the estimate itself
             -math.inf,  # no other onset open
+            False,  # inside the operating range
         )
         if code:
             codes.append((round(k * dt, 2), code))
@@ -801,6 +802,7 @@ def test_holds_count_samples_whatever_the_rounding_of_the_sample_times() -> None
                 config.hold_s,
                 math.radians(8.0),
                 -math.inf,
+                False,
             )
             if code == kern.EV_DETECTED:
                 detected = k
@@ -1739,6 +1741,72 @@ def test_a_split_surface_fault_is_detected_as_its_group_before_the_half_is_isola
     assert own_off.detail["component"] == "aileron_right" and own_off.t_s < half.t_s
 
 
+def test_a_rejected_filters_variance_does_not_swamp_the_deflection_gate() -> None:
+    """The rudder is stuck and then the right elevator oscillates about its trim: the
+    filters freeing the rudder and one elevator half share the mass. A filter the data reject
+    (at its probability floor) holds the elevator too, with a deflection variance that jumps
+    from sample to sample to hundreds of times its prior; weighted even by its floor, it would
+    make the gate (1.5 posterior std) flicker between about 3 and 15 deg, and the group was
+    never raised. Each filter adds at most its prior variance: the group "one of the two
+    elevators" is raised about 1 s after the oscillation starts."""
+    faults = (
+        SurfaceFault("rudder", 2.0, 30.0, "stuck", position_deg=-14.5),
+        SurfaceFault(
+            "elevator_right", 5.5, 30.0, "sine", center_deg=-4.1, amplitude_deg=4.1, period_s=2.6
+        ),
+    )
+    t, ch, _ = simulate_flight(
+        10.0, sample_rate_hz=50.0, faults=faults, seed=2, airspeed_m_s=31.5
+    )
+    config = stmmae.parse_config({"model": reference_model(0.02, 31.5)})
+    cap = math.radians(config.deflection_initial_std_deg) ** 2
+    surface = list(config.model.surfaces).index("elevator_right")
+    slots = config.arrays.slot_surface
+    n = config.arrays.offset.shape[1] - slots.shape[1]
+    state = stmmae.initial_state(config)
+    events = []
+    plain, capped = [], []
+    for lo in range(0, len(t), 1):
+        batch = Batch(t_s=t[lo : lo + 1], channels={c: v[lo : lo + 1] for c, v in ch.items()})
+        state, out = stmmae.step(config, state, batch)
+        events += out.events
+        if not 5.5 < t[lo] < 6.5:
+            continue
+        parts = stmmae.state_parts(config, state)
+        p, var, var_c = 0.0, 0.0, 0.0
+        for f, row in enumerate(slots):
+            for e, g in enumerate(row):
+                if g == surface:
+                    pdd = parts.P[f, n + e, n + e]
+                    p += parts.probabilities[f]
+                    var += parts.probabilities[f] * pdd
+                    var_c += parts.probabilities[f] * min(pdd, cap)
+        if p > 0.3:  # the mass is split between the two halves' filters
+            plain.append(1.5 * math.degrees(math.sqrt(var / p)))
+            capped.append(1.5 * math.degrees(math.sqrt(var_c / p)))
+    assert plain and max(plain) > 10.0 and min(plain) < 4.0  # the flicker without the cap
+    assert max(capped) < 4.0
+    det = [(e.detail["component"], e.t_s) for e in events if e.kind == "fault_detected"]
+    assert [c for c, _ in det] == ["rudder", "elevator"]
+    assert det[0][1] < 2.5 and 6.0 < det[1][1] < 7.0
+
+
+def test_no_group_is_raised_while_two_surfaces_are_in_fault() -> None:
+    """Both ailerons stick, 6 and 14 deg: with two surfaces in fault, every filter freeing an
+    elevator half holds one aileron at its command. Their summed mass passed the group's
+    conditions 8.7 s after the second aileron's detection (before this rule); no group is
+    raised now while as many surfaces are in fault as a hypothesis frees."""
+    faults = (
+        SurfaceFault("aileron_right", 2.0, 30.0, "stuck", position_deg=6.3),
+        SurfaceFault("aileron_left", 6.0, 30.0, "stuck", position_deg=14.4),
+    )
+    t, ch, _ = simulate_flight(17.0, faults=faults, seed=5, airspeed_m_s=29.5)
+    config = stmmae.parse_config({"model": reference_model(0.01, 29.5)})
+    _, _, _, events, _ = run(config, t, ch)
+    det = [e.detail["component"] for e in events if e.kind == "fault_detected"]
+    assert det == ["aileron", "aileron_right", "aileron_left"]
+
+
 def test_version_4_state_gets_fresh_group_fields() -> None:
     """Version 4 -> 5 appends the group decision fields as a fresh state has them (no group
     detected, no run open); every other part is kept, and the state is written back as
@@ -1897,7 +1965,9 @@ def test_no_fault_is_detected_once_the_aircraft_departs_from_controlled_flight()
     made, and the status names both beside the fault. With the airspeed and sideslip bounds
     alone a half is named in the loop. (The halves' summed evidence against each other is off
     here, so that the group stays unresolved into the loop; with it, the default, both halves
-    are named within 0.7 s of the onset, before the loop, and classified stuck.)"""
+    are named within 0.7 s of the onset, before the loop, and classified stuck: their kind
+    histories skip the samples outside the range, on which one of them, at an autocorrelation
+    of -0.50, was read oscillating.)"""
     faults = tuple(
         SurfaceFault(s, 10.0, 40.0, "stuck", position_deg=20.0)
         for s in ("elevator_left", "elevator_right")
