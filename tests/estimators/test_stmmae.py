@@ -1755,9 +1755,7 @@ def test_a_rejected_filters_variance_does_not_swamp_the_deflection_gate() -> Non
             "elevator_right", 5.5, 30.0, "sine", center_deg=-4.1, amplitude_deg=4.1, period_s=2.6
         ),
     )
-    t, ch, _ = simulate_flight(
-        10.0, sample_rate_hz=50.0, faults=faults, seed=2, airspeed_m_s=31.5
-    )
+    t, ch, _ = simulate_flight(10.0, sample_rate_hz=50.0, faults=faults, seed=2, airspeed_m_s=31.5)
     config = stmmae.parse_config({"model": reference_model(0.02, 31.5)})
     cap = math.radians(config.deflection_initial_std_deg) ** 2
     surface = list(config.model.surfaces).index("elevator_right")
