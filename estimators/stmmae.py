@@ -74,7 +74,7 @@ from estimators.kernels.stmmae_kernels import IntArray
 from estimators.models.small_uav import reference_model
 
 NAME = "stmmae"
-STATE_VERSION = 7
+STATE_VERSION = 8
 
 Variant = Literal["improved", "strong_tracking", "emmae"]
 Likelihood = Literal["euclidean", "gaussian"]
@@ -446,6 +446,13 @@ class StmmaeConfig(EstimatorConfigModel):
         description="time constant over which the measurements bounded by the model's "
         "operating_range are smoothed before they are compared with it, s",
     )
+    operating_range_settle_s: Number = Field(
+        2.0,
+        ge=0.0,
+        le=3600.0,
+        description="no new detection until the aircraft has been back inside the model's "
+        "operating_range for this long, s (0: from the first sample inside)",
+    )
     group_isolation_odds: Number = Field(
         0.99,
         gt=0.0,
@@ -675,6 +682,7 @@ def _kernel_vector(config: StmmaeConfig) -> FloatArray:
     cfg[kern.CFG_HOLD_ENDING] = 1.0 if ending else 0.0
     cfg[kern.CFG_GROUP_WINDOW_S] = config.group_onset_window_s
     cfg[kern.CFG_RANGE_SMOOTH_S] = config.operating_range_smoothing_s
+    cfg[kern.CFG_RANGE_SETTLE_S] = config.operating_range_settle_s
     cfg[kern.CFG_CLEAR_DEFL] = math.radians(config.clear_deflection_deg)
     cfg[kern.CFG_CLEAR_SMOOTH_S] = config.clear_smoothing_s
     cfg[kern.CFG_MIN_LLR] = config.min_log_likelihood_ratio
@@ -849,10 +857,10 @@ class StmmaeState:
         version: schema version (``STATE_VERSION``).
         t_last_s: time of the last sample seen (-inf before any).
         vector: FloatArray  # (layout.length,) packed parts, never modified in place.
-        layout_version: the layout ``vector`` has: ``STATE_VERSION``, or 2, 3, 4, 5 or 6 for a
+        layout_version: the layout ``vector`` has: ``STATE_VERSION``, or 2 to 7 for a
             state of that version just loaded, whose new parts need the configuration and are
             added by the first :func:`state_parts` or :func:`step` (see
-            :func:`_upgrade_layout_v2` to :func:`_upgrade_layout_v6`).
+            :func:`_upgrade_layout_v2` to :func:`_upgrade_layout_v7`).
     """
 
     version: int
@@ -893,6 +901,8 @@ class StateParts:
             in units of the model's R over the open health window (version 6).
         noise_smoothed: FloatArray  # (1,) that energy smoothed over operating_range_smoothing_s
             (NaN before a first value; version 6).
+        last_outside_s: FloatArray  # (1,) time of the last sample outside the operating range
+            (NaN: none yet; version 8).
     """
 
     samples_seen: float
@@ -913,6 +923,7 @@ class StateParts:
     outside_samples: FloatArray
     noise_sums: FloatArray
     noise_smoothed: FloatArray
+    last_outside_s: FloatArray
 
 
 def layout(config: StmmaeConfig) -> kern.Layout:
@@ -958,6 +969,7 @@ def state_parts(config: StmmaeConfig, state: StmmaeState) -> StateParts:
         outside_samples=checks[kern.CK_OUTSIDE : kern.CK_OUTSIDE + 1],
         noise_sums=checks[kern.CK_NOISE_SUM : kern.CK_NOISE_N + 1],
         noise_smoothed=checks[kern.CK_NOISE_SMOOTH : kern.CK_NOISE_SMOOTH + 1],
+        last_outside_s=checks[kern.CK_LAST_OUTSIDE_T : kern.CK_LAST_OUTSIDE_T + 1],
     )
 
 
@@ -988,6 +1000,7 @@ def initial_state(config: StmmaeConfig) -> StmmaeState:
             vec[g + idx] = np.nan
     vec[lay.operating : lay.checks] = np.nan
     vec[lay.checks + kern.CK_NOISE_SMOOTH] = np.nan
+    vec[lay.checks + kern.CK_LAST_OUTSIDE_T] = np.nan
     vec.setflags(write=False)
     return StmmaeState(version=STATE_VERSION, t_last_s=-math.inf, vector=vec)
 
@@ -1084,6 +1097,7 @@ def _upgrade_layout_v3(config: StmmaeConfig, vector: FloatArray) -> FloatArray:
 
 
 _V6_G_LEN = 6  # group decision fields per surface in versions 5 and 6
+_V7_CK_LEN = 4  # status checks in versions 6 and 7
 
 
 def _upgrade_layout_v4(config: StmmaeConfig, vector: FloatArray) -> FloatArray:
@@ -1114,7 +1128,8 @@ def _upgrade_layout_v5(config: StmmaeConfig, vector: FloatArray) -> FloatArray:
             f"version-5 state of length {vector.shape[0]} does not fit this configuration "
             f"(expected {end})"
         )
-    fresh = np.concatenate([vector, initial_state(config).vector[lay.operating :]])
+    tail = initial_state(config).vector[lay.operating : lay.checks + _V7_CK_LEN]
+    fresh = np.concatenate([vector, tail])
     fresh.setflags(write=False)
     return fresh
 
@@ -1126,7 +1141,7 @@ def _upgrade_layout_v6(config: StmmaeConfig, vector: FloatArray) -> FloatArray:
     the next sample on."""
     lay = layout(config)
     end = lay.groups + lay.s * _V6_G_LEN
-    expected = end + lay.length - lay.operating
+    expected = end + lay.checks + _V7_CK_LEN - lay.operating
     if vector.shape != (expected,):
         raise EstimatorError(
             f"version-6 state of length {vector.shape[0]} does not fit this configuration "
@@ -1135,6 +1150,22 @@ def _upgrade_layout_v6(config: StmmaeConfig, vector: FloatArray) -> FloatArray:
     groups = np.zeros((lay.s, kern.G_LEN))
     groups[:, :_V6_G_LEN] = vector[lay.groups : end].reshape(lay.s, _V6_G_LEN)
     fresh = np.concatenate([vector[: lay.groups], groups.ravel(), vector[end:]])
+    fresh.setflags(write=False)
+    return fresh
+
+
+def _upgrade_layout_v7(config: StmmaeConfig, vector: FloatArray) -> FloatArray:
+    """Version 7 -> 8: version 8 appends a status check, the time of the last sample outside
+    the operating range (``CK_LAST_OUTSIDE_T``), unset: a state dumped less than
+    ``operating_range_settle_s`` after leaving the range does not wait out the rest of it."""
+    lay = layout(config)
+    expected = lay.checks + _V7_CK_LEN
+    if vector.shape != (expected,):
+        raise EstimatorError(
+            f"version-7 state of length {vector.shape[0]} does not fit this configuration "
+            f"(expected {expected})"
+        )
+    fresh = np.concatenate([vector, initial_state(config).vector[expected:]])
     fresh.setflags(write=False)
     return fresh
 
@@ -1152,11 +1183,21 @@ def _current_vector(config: StmmaeConfig, state: StmmaeState) -> FloatArray:
         vector = _upgrade_layout_v5(config, vector)
     if state.layout_version <= 6:
         vector = _upgrade_layout_v6(config, vector)
+    if state.layout_version <= 7:
+        vector = _upgrade_layout_v7(config, vector)
     return vector
 
 
 _UPGRADES: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {1: _upgrade_v1}
-_LAYOUT_VERSIONS = (2, 3, 4, 5, 6, STATE_VERSION)  # versions whose vector this code reads directly
+_LAYOUT_VERSIONS = (
+    2,
+    3,
+    4,
+    5,
+    6,
+    7,
+    STATE_VERSION,
+)  # versions whose vector this code reads directly
 
 
 def load_state(data: bytes) -> StmmaeState:

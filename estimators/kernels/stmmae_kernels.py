@@ -87,7 +87,8 @@ CFG_GROUP_HALF_EVIDENCE = 36  # 1: a half of a detected group is also named on t
 # log-likelihood of its single-fault filter against its twin's (G_HALF_LLR)
 CFG_KIND_WAIT_S = 37  # longest wait of a kind span's end for a fault whose onset lies inside it
 CFG_DEFL_VAR_CAP = 38  # largest posterior variance of a deflection a filter contributes (rad^2)
-CFG_LEN = 39
+CFG_RANGE_SETTLE_S = 39  # no new detection for this long after a sample outside the range
+CFG_LEN = 40
 COLLINEAR_STEPS = 20  # model steps over which a deflection's effect on the measurements is taken
 
 KIND_BLOCK_S = 0.05  # the kind test reads the deflection estimate as means over 0.05 s blocks
@@ -182,7 +183,8 @@ CK_OUTSIDE = 0  # samples outside the operating range in the open health window
 CK_NOISE_SUM = 1  # sum of the no-fault filter's innovation energy (units of R) in that window
 CK_NOISE_N = 2  # its count
 CK_NOISE_SMOOTH = 3  # the innovation energy smoothed over CFG_RANGE_SMOOTH_S (NaN: none yet)
-CK_LEN = 4
+CK_LAST_OUTSIDE_T = 4  # time of the last sample outside the operating range (NaN: none yet)
+CK_LEN = 5
 
 # event rows
 EV_T = 0
@@ -1709,6 +1711,12 @@ def _bank_kernel(
         # no new detection is made there (the model does not hold)
         a_range = 1.0 - math.exp(-dt / cfg[CFG_RANGE_SMOOTH_S])
         outside = _outside_range(bank, ysm, y[:, k], a_range)
+        if outside:
+            checks[CK_LAST_OUTSIDE_T] = tk
+        # back inside the range, the aircraft is often still near its edge and the filters
+        # re-converge from what they tracked outside: no new detection until it has stayed
+        # inside for CFG_RANGE_SETTLE_S
+        settling = tk - checks[CK_LAST_OUTSIDE_T] < cfg[CFG_RANGE_SETTLE_S]
         _add_noise(checks, noise0, a_range)
         a_clear = 1.0 - math.exp(-dt / cfg[CFG_CLEAR_SMOOTH_S])
         any_active = False
@@ -1802,7 +1810,7 @@ def _bank_kernel(
                 iso_level = max(iso_level, cfg[CFG_GROUP_ISO])
                 if cfg[CFG_GROUP_HALF_EVIDENCE] != 0.0:
                     iso_h = max(iso_h, half_odds(gdec, lead, h))
-            if outside or ending:
+            if outside or settling or ending:
                 iso_level = np.inf  # no odds pass: detection withheld (fault_ending)
             code = _decide(
                 cfg,
@@ -1924,7 +1932,7 @@ def _bank_kernel(
                     # while as many surfaces are in fault as a hypothesis frees, each filter
                     # freeing a half holds a surface in fault at its command: the group's
                     # evidence is then evidence against a detected fault, not for a new one
-                    outside or ending or n_active_after >= n_slots,
+                    outside or settling or ending or n_active_after >= n_slots,
                     n_active_after > 0,
                 )
                 if code == EV_GROUP_ISOLATED:

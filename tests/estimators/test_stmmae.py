@@ -636,12 +636,12 @@ def test_episode_statistics_are_precision_weighted() -> None:
 DATA = Path(__file__).parent / "data"
 
 
-@pytest.mark.parametrize("version", [1, 2, 3, 4, 5, 6])
+@pytest.mark.parametrize("version", [1, 2, 3, 4, 5, 6, 7])
 def test_older_state_fixtures_load_and_step(version) -> None:
     """States dumped by earlier code (version 1: equal-weight episode sums; version 2; version
     3, dumped before the detection evidence was re-based; version 4, before the group decision
     fields; version 5, before the operating range; version 6, before the halves' evidence of a
-    detected group) load,
+    detected group; version 7, before the time of the last sample outside the range) load,
     keep their filters and probabilities, and step on: the stuck right aileron of the fixture's
     flight (6 s, stuck at +12 deg from 2 s) stays the active fault."""
     blob = (DATA / f"stmmae_state_v{version}.bin").read_bytes()
@@ -1850,7 +1850,8 @@ def test_version_6_state_gets_a_zero_half_evidence() -> None:
     assert state.layout_version == 6
     lay = stmmae.layout(config)
     old_end = lay.groups + lay.s * 6
-    assert state.vector.shape == (old_end + lay.length - lay.operating,)
+    # the tail up to version 7's four status checks (version 8 appends a fifth)
+    assert state.vector.shape == (old_end + lay.length - 1 - lay.operating,)
     parts = stmmae.state_parts(config, state)
     np.testing.assert_array_equal(parts.groups[:, kern.G_HALF_LLR], 0.0)
     np.testing.assert_array_equal(
@@ -1858,8 +1859,24 @@ def test_version_6_state_gets_a_zero_half_evidence() -> None:
     )
     vec = stmmae._current_vector(config, state)
     np.testing.assert_array_equal(vec[: lay.groups], state.vector[: lay.groups])
-    np.testing.assert_array_equal(vec[lay.operating :], state.vector[old_end:])
+    np.testing.assert_array_equal(vec[lay.operating : -1], state.vector[old_end:])
     assert json.loads(stmmae.dump_state(state))["version"] == 6
+
+
+def test_version_7_state_gets_an_unset_last_outside_time() -> None:
+    """Version 7 -> 8 appends the status check ``CK_LAST_OUTSIDE_T``, unset (NaN); every other
+    part is kept, and the state is written back as version 7 until it is stepped."""
+    blob = (DATA / "stmmae_state_v7.bin").read_bytes()
+    config = stmmae.parse_config({"health_window_samples": 250})
+    state = stmmae.load_state(blob)
+    assert state.layout_version == 7
+    lay = stmmae.layout(config)
+    assert state.vector.shape == (lay.length - 1,)
+    parts = stmmae.state_parts(config, state)
+    assert np.isnan(parts.last_outside_s[0])
+    vec = stmmae._current_vector(config, state)
+    np.testing.assert_array_equal(vec[:-1], state.vector)
+    assert json.loads(stmmae.dump_state(state))["version"] == 7
 
 
 # ----------------------------------------------------------------------------- operating range
@@ -1921,8 +1938,9 @@ def test_no_fault_is_detected_in_sustained_sideslip_until_it_is_back_in_range() 
     """Two overlapping turns of opposite bank demands hold the aircraft in a skid: the sideslip,
     smoothed over 10 s, passes the reference model's 6 deg at about 24 s and is back under it by
     about 31 s. A right aileron stuck from 28 s is held back while the smoothed sideslip is
-    outside (status "unknown" naming it, the samples counted) and detected once it is back
-    inside; with the airspeed bound alone it is detected at once."""
+    outside (status "unknown" naming it, the samples counted) and detected once it has been
+    back inside for ``operating_range_settle_s`` (2 s; with 0, at once); with the airspeed
+    bound alone it is detected at once."""
     turns = (Manoeuvre(5.0, 25.0, -85.3, 0.0), Manoeuvre(9.0, 17.5, -100.1, 0.0))
     fault = (SurfaceFault("aileron_right", 28.0, 40.0, "stuck", position_deg=-8.0),)
     t, ch, _ = simulate_flight(
@@ -1939,13 +1957,21 @@ def test_no_fault_is_detected_in_sustained_sideslip_until_it_is_back_in_range() 
     assert [e for e in first.events if e.kind == "fault_detected"] == []
     assert first.status is not None and first.status.status == "unknown"
     assert first.status.reasons[0].startswith("beta 0.1")
-    _, rest = stmmae.step(
+    state_end, rest = stmmae.step(
         config, state, Batch(t_s=t[cut:], channels={k: v[cut:] for k, v in ch.items()})
     )
     assert rest.health[0].t_start_s == 20.0  # the window 20-30 s
     assert rest.health[0].indicators["outside_operating_range_fraction"] > 0.5
     detected = [e.t_s for e in rest.events if e.kind == "fault_detected"]
-    assert detected and 30.0 < detected[0] < 33.0
+    last_out = float(stmmae.state_parts(config, state_end).last_outside_s[0])
+    assert 30.0 < last_out < 33.0
+    assert detected and last_out + config.operating_range_settle_s <= detected[0] < last_out + 3.0
+    at_once = stmmae.parse_config(
+        {"health_window_samples": 500, "model": model, "operating_range_settle_s": 0.0}
+    )
+    _, out_once = stmmae.step(at_once, stmmae.initial_state(at_once), Batch(t_s=t, channels=ch))
+    detected_once = [e.t_s for e in out_once.events if e.kind == "fault_detected"]
+    assert detected_once and last_out < detected_once[0] < last_out + 0.5
     airspeed_only = {**model, "operating_range": {"airspeed": model["operating_range"]["airspeed"]}}
     config_off = stmmae.parse_config({"health_window_samples": 500, "model": airspeed_only})
     _, out_off = stmmae.step(
