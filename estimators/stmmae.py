@@ -1413,8 +1413,10 @@ def active_faults(config: StmmaeConfig, state: StmmaeState) -> list[dict[str, An
 
 def outside_operating_range(config: StmmaeConfig, state: StmmaeState) -> list[str]:
     """One reason per measurement whose smoothed value is outside the model's operating range
-    at the last sample (empty: inside, or no bound)."""
-    smoothed = state_parts(config, state).operating
+    at the last sample; inside it, one reason while the aircraft has been back inside for less
+    than ``operating_range_settle_s`` (empty: inside and settled, or no bound)."""
+    parts = state_parts(config, state)
+    smoothed = parts.operating
     reasons = []
     for a, meas in enumerate(config.model.measurements):
         bounds = config.model.operating_range.get(meas.name)
@@ -1425,6 +1427,12 @@ def outside_operating_range(config: StmmaeConfig, state: StmmaeState) -> list[st
             f"{meas.name} {value:.4g} (smoothed over {config.operating_range_smoothing_s:g} s) "
             f"outside the model's operating range {bounds[0]:g} to {bounds[1]:g}: "
             "no new fault is detected"
+        )
+    since = state.t_last_s - float(parts.last_outside_s[0])
+    if not reasons and since < config.operating_range_settle_s:
+        reasons.append(
+            f"back inside the model's operating range for {since:.2f} s: no new fault is "
+            f"detected before {config.operating_range_settle_s:g} s inside"
         )
     return reasons
 
@@ -1446,7 +1454,8 @@ def _noise_reasons(config: StmmaeConfig, state: StmmaeState) -> list[str]:
 
 def status_report(config: StmmaeConfig, state: StmmaeState) -> StatusReport:
     """ "alert" while a fault is active; "unknown" while a measurement is outside the model's
-    operating range (no new fault is detected there) or the innovations, smoothed, are above
+    operating range or has been back inside for less than ``operating_range_settle_s`` (no new
+    fault is detected then) or the innovations, smoothed, are above
     ``noise_ratio_unknown`` times the model's sensor noise; "watch" while a surface's fault
     probability is above ``watch_probability`` without being confirmed; else "ok"."""
     faults = active_faults(config, state)

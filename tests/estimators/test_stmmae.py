@@ -1939,8 +1939,8 @@ def test_no_fault_is_detected_in_sustained_sideslip_until_it_is_back_in_range() 
     smoothed over 10 s, passes the reference model's 6 deg at about 24 s and is back under it by
     about 31 s. A right aileron stuck from 28 s is held back while the smoothed sideslip is
     outside (status "unknown" naming it, the samples counted) and detected once it has been
-    back inside for ``operating_range_settle_s`` (2 s; with 0, at once); with the airspeed
-    bound alone it is detected at once."""
+    back inside for ``operating_range_settle_s`` (2 s, the status "unknown" saying so
+    meanwhile; with 0, at once); with the airspeed bound alone it is detected at once."""
     turns = (Manoeuvre(5.0, 25.0, -85.3, 0.0), Manoeuvre(9.0, 17.5, -100.1, 0.0))
     fault = (SurfaceFault("aileron_right", 28.0, 40.0, "stuck", position_deg=-8.0),)
     t, ch, _ = simulate_flight(
@@ -1957,6 +1957,13 @@ def test_no_fault_is_detected_in_sustained_sideslip_until_it_is_back_in_range() 
     assert [e for e in first.events if e.kind == "fault_detected"] == []
     assert first.status is not None and first.status.status == "unknown"
     assert first.status.reasons[0].startswith("beta 0.1")
+    mid = int(np.searchsorted(t, 32.5))  # back inside, not settled yet
+    _, settling = stmmae.step(
+        config, state, Batch(t_s=t[cut:mid], channels={k: v[cut:mid] for k, v in ch.items()})
+    )
+    assert [e for e in settling.events if e.kind == "fault_detected"] == []
+    assert settling.status is not None and settling.status.status == "unknown"
+    assert settling.status.reasons[0].startswith("back inside the model's operating range for")
     state_end, rest = stmmae.step(
         config, state, Batch(t_s=t[cut:], channels={k: v[cut:] for k, v in ch.items()})
     )
