@@ -21,10 +21,12 @@ surface's) above ``detect_probability``, the deflection estimate off its command
 log-likelihood ratio between "this surface and a subset of the active faults" and "a subset of
 the active faults" summed over the run above ``min_log_likelihood_ratio``, held ``hold_s``
 (``hold_while_active_s`` while another surface is in fault, ``hold_while_twin_active_s`` while
-its twin is), and none is made outside the model's operating range or while a detected fault
-ends (``hold_while_fault_ends``); the fault kind (stuck or oscillating) is judged from the
+its twin is), and none is made outside the model's operating range, less than
+``operating_range_settle_s`` back inside it, or while a detected fault ends
+(``hold_while_fault_ends``); the fault kind (stuck or oscillating) is judged from the
 autocorrelation of the deflection history over ``fault_kind_window_s`` (samples with the
-surface's probability at or below ``onset_probability`` skipped; cut before the onset of a
+surface's probability at or below ``onset_probability``, or outside the operating range,
+skipped; cut before the onset of a
 fault detected during it, ``fault_kind_cut``, its end waiting for the detection of a fault
 whose onset lies inside it, ``fault_kind_wait_s``; the estimate conditioned on a twin half's known
 position, ``fault_kind_twin_correction``); clearance needs the surface back at its command with
@@ -255,7 +257,12 @@ class StmmaeConfig(EstimatorConfigModel):
         25.0, gt=0.0, le=1e6, description="random-walk intensity of a deflection state, deg^2/s"
     )
     deflection_initial_std_deg: Number = Field(
-        10.0, gt=0.0, le=180.0, description="initial std of a deflection state, deg"
+        10.0,
+        gt=0.0,
+        le=180.0,
+        description="initial std of a deflection state, deg; also the largest std a filter "
+        "contributes to a surface's posterior variance in the deflection gate "
+        "(min_deflection_error_std)",
     )
     probability_floor: Number = Field(
         0.001, gt=0.0, le=0.01, description="floor of every single-fault hypothesis probability"
@@ -386,8 +393,9 @@ class StmmaeConfig(EstimatorConfigModel):
         "surface) are also detected together, as 'one of the two', while neither half is in "
         "fault: a fault_detected event names the group and both candidates as soon as the "
         "group's conditions hold, before the data tell the halves apart (while another surface "
-        "is in fault, after group_hold_while_active_s); the half's own detection follows and "
-        "ends the group's episode (docs/methods-stmmae.md, 'Group detection')",
+        "is in fault, after group_hold_while_active_s; none while as many surfaces are in fault "
+        "as a hypothesis frees); the half's own detection follows and ends the group's episode "
+        "(docs/methods-stmmae.md, 'Group detection')",
     )
     group_hold_s: Number = Field(
         0.1,

@@ -950,14 +950,15 @@ def _decide(
     probability ``prob`` above ``CFG_DETECT_P`` and the isolation odds ``iso`` (the surface's
     probability of being the only new fault against its strongest competitor's) above
     ``iso_level`` (``CFG_DETECT_P``, ``CFG_GROUP_ISO`` while the surface's group is detected and
-    no other surface is in fault, infinite while outside the operating range or while a fault
-    ends), the smoothed deflection estimate more than ``CFG_MIN_ERR`` from the command, and at
+    no other surface is in fault, infinite while outside the operating range, less than
+    ``CFG_RANGE_SETTLE_S`` back inside it, or while a fault ends), the smoothed deflection estimate more than ``CFG_MIN_ERR`` from the command, and at
     the end the log-likelihood ratio between the nested families (:func:`_relevant_loglik`)
     summed over the run at least ``CFG_MIN_LLR``.
     ``kval`` is the value the kind history records (``defl``, or the estimate conditioned on
     its twin's known position, :func:`kind_value`); ``other_onset`` the latest open onset of a
     surface or group not in fault (-inf: none), for which the end of the kind span waits when
-    it lies inside the span (``CFG_KIND_WAIT_S``).
+    it lies inside the span (``CFG_KIND_WAIT_S``); ``outside``: the sample is outside the
+    operating range (not added to the kind history).
     Clearance (hysteresis): the smoothed difference between deflection estimate
     and command inside ``CFG_CLEAR_DEFL`` (the surface follows its command again) and, unless
     the bank is rebased (the probability then no longer compares with the command), the
