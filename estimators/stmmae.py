@@ -76,7 +76,7 @@ from estimators.kernels.stmmae_kernels import IntArray
 from estimators.models.small_uav import reference_model
 
 NAME = "stmmae"
-STATE_VERSION = 8
+STATE_VERSION = 9
 
 Variant = Literal["improved", "strong_tracking", "emmae"]
 Likelihood = Literal["euclidean", "gaussian"]
@@ -865,10 +865,10 @@ class StmmaeState:
         version: schema version (``STATE_VERSION``).
         t_last_s: time of the last sample seen (-inf before any).
         vector: FloatArray  # (layout.length,) packed parts, never modified in place.
-        layout_version: the layout ``vector`` has: ``STATE_VERSION``, or 2 to 7 for a
+        layout_version: the layout ``vector`` has: ``STATE_VERSION``, or 2 to 8 for a
             state of that version just loaded, whose new parts need the configuration and are
             added by the first :func:`state_parts` or :func:`step` (see
-            :func:`_upgrade_layout_v2` to :func:`_upgrade_layout_v7`).
+            :func:`_upgrade_layout_v2` to :func:`_upgrade_layout_v8`).
     """
 
     version: int
@@ -911,6 +911,10 @@ class StateParts:
             (NaN before a first value; version 6).
         last_outside_s: FloatArray  # (1,) time of the last sample outside the operating range
             (NaN: none yet; version 8).
+        group_kinds: FloatArray  # (s, kern.D_LEN) kind spans of the groups, one row per half
+            (the kind fields of ``D_*``; version 9).
+        group_kind_blocks: FloatArray  # (s, kern.KIND_BLOCKS) their block histories (rad;
+            version 9).
     """
 
     samples_seen: float
@@ -932,6 +936,8 @@ class StateParts:
     noise_sums: FloatArray
     noise_smoothed: FloatArray
     last_outside_s: FloatArray
+    group_kinds: FloatArray
+    group_kind_blocks: FloatArray
 
 
 def layout(config: StmmaeConfig) -> kern.Layout:
@@ -956,7 +962,7 @@ def state_parts(config: StmmaeConfig, state: StmmaeState) -> StateParts:
         )
     nh, na, p, m = lay.nh, lay.na, lay.p, lay.m
     blocks = vec[lay.filt : lay.filt + nh * lay.filt_len].reshape(nh, lay.filt_len)
-    checks = vec[lay.checks : lay.length]
+    checks = vec[lay.checks : lay.group_kinds]
     v_off = na + na * na
     return StateParts(
         samples_seen=float(vec[kern.ST_N_SEEN]),
@@ -978,6 +984,8 @@ def state_parts(config: StmmaeConfig, state: StmmaeState) -> StateParts:
         noise_sums=checks[kern.CK_NOISE_SUM : kern.CK_NOISE_N + 1],
         noise_smoothed=checks[kern.CK_NOISE_SMOOTH : kern.CK_NOISE_SMOOTH + 1],
         last_outside_s=checks[kern.CK_LAST_OUTSIDE_T : kern.CK_LAST_OUTSIDE_T + 1],
+        group_kinds=vec[lay.group_kinds : lay.group_kind_blocks].reshape(lay.s, kern.D_LEN),
+        group_kind_blocks=vec[lay.group_kind_blocks : lay.length].reshape(lay.s, kern.KIND_BLOCKS),
     )
 
 
@@ -997,12 +1005,12 @@ def initial_state(config: StmmaeConfig) -> StmmaeState:
     vec[lay.u_last : lay.u_last + lay.m] = arr.u_trim
     vec[lay.applied : lay.applied + lay.m] = arr.u_trim
     for h in range(lay.s):
-        d = lay.decisions + h * kern.D_LEN
-        for idx in kern.D_TIMES:
-            vec[d + idx] = np.nan
-        vec[d + kern.D_BLK_IDX] = -1.0
-        vec[d + kern.D_KIND_CORR] = np.nan
-        vec[d + kern.D_DEFL] = np.nan
+        for d in (lay.decisions + h * kern.D_LEN, lay.group_kinds + h * kern.D_LEN):
+            for idx in kern.D_TIMES:
+                vec[d + idx] = np.nan
+            vec[d + kern.D_BLK_IDX] = -1.0
+            vec[d + kern.D_KIND_CORR] = np.nan
+            vec[d + kern.D_DEFL] = np.nan
         g = lay.groups + h * kern.G_LEN
         for idx in kern.G_TIMES:
             vec[g + idx] = np.nan
@@ -1173,7 +1181,22 @@ def _upgrade_layout_v7(config: StmmaeConfig, vector: FloatArray) -> FloatArray:
             f"version-7 state of length {vector.shape[0]} does not fit this configuration "
             f"(expected {expected})"
         )
-    fresh = np.concatenate([vector, initial_state(config).vector[expected:]])
+    fresh = np.concatenate([vector, initial_state(config).vector[expected : lay.group_kinds]])
+    fresh.setflags(write=False)
+    return fresh
+
+
+def _upgrade_layout_v8(config: StmmaeConfig, vector: FloatArray) -> FloatArray:
+    """Version 8 -> 9: version 9 appends the groups' kind spans (:func:`kern._group_kind`),
+    which start as a fresh state has them (none open): a group detected when the state was
+    dumped keeps a pending kind until it ends; the next group episode has its kind judged."""
+    lay = layout(config)
+    if vector.shape != (lay.group_kinds,):
+        raise EstimatorError(
+            f"version-8 state of length {vector.shape[0]} does not fit this configuration "
+            f"(expected {lay.group_kinds})"
+        )
+    fresh = np.concatenate([vector, initial_state(config).vector[lay.group_kinds :]])
     fresh.setflags(write=False)
     return fresh
 
@@ -1193,6 +1216,8 @@ def _current_vector(config: StmmaeConfig, state: StmmaeState) -> FloatArray:
         vector = _upgrade_layout_v6(config, vector)
     if state.layout_version <= 7:
         vector = _upgrade_layout_v7(config, vector)
+    if state.layout_version <= 8:
+        vector = _upgrade_layout_v8(config, vector)
     return vector
 
 
@@ -1204,6 +1229,7 @@ _LAYOUT_VERSIONS = (
     5,
     6,
     7,
+    8,
     STATE_VERSION,
 )  # versions whose vector this code reads directly
 
@@ -1378,12 +1404,15 @@ def _event(row: FloatArray, config: StmmaeConfig) -> EstimatorEvent:
 
 def _fault_reason(f: dict[str, Any]) -> str:
     """Status reason of an active fault, from the same detail as its events."""
+    which = " or ".join(f["candidates"])
+    open_half = " (which one: not isolated yet)" if len(f["candidates"]) > 1 else ""
     if f["fault_kind"] == "stuck":
         pos = f["stuck_position_deg"]
         where = "unknown position" if pos is None else f"{pos:.1f} deg"
-        return f"fault: {f['component']} stuck at {where}"
+        return f"fault: {which} stuck at {where}{open_half}"
     if f["fault_kind"] == "oscillating":
-        return f"fault: {f['component']} oscillating, swing {f['deflection_swing_deg']:.1f} deg"
+        swing = f["deflection_swing_deg"]
+        return f"fault: {which} oscillating, swing {swing:.1f} deg{open_half}"
     if len(f["candidates"]) > 1:
         return (
             f"fault: {' or '.join(f['candidates'])} not following its command (which one: "
@@ -1401,17 +1430,21 @@ def active_faults(config: StmmaeConfig, state: StmmaeState) -> list[dict[str, An
         if d[kern.D_ACTIVE] == 1.0
     ]
     arr = config.arrays
+    gkd = parts.group_kinds
     for h, g in enumerate(parts.groups):
         if g[kern.G_ACTIVE] == 1.0:
             a = kern.twin_index(arr.collinear, h)
-            nan = math.nan  # a group has no kind, position or swing yet
+            lead = kern.group_kind_lead(gkd, h, a)
+            judged = gkd[lead, kern.D_BLK_IDX] >= kern.KIND_BLOCKS
+            code = gkd[lead, kern.D_KIND] if judged else kern.KIND_PENDING
+            nan = math.nan  # no kind, position or swing before the group's kind is judged
             faults.append(
                 _detail(
                     *_component(config, h, a),
-                    kern.KIND_PENDING,
-                    nan,
-                    nan,
-                    nan,
+                    code,
+                    kern.episode_mean(gkd, lead) if judged else nan,
+                    kern.episode_swing(gkd, lead) if judged else nan,
+                    gkd[lead, kern.D_KIND_CORR] if judged else nan,
                     g[kern.G_ONSET_T],
                     g[kern.G_DETECTED_T],
                 )
@@ -1596,7 +1629,7 @@ def step(config: StmmaeConfig, state: StmmaeState, batch: Batch) -> tuple[Stmmae
     if batch.end_of_run and wacc[kern.W_COUNT] > 0.0:
         # the run is closed: its partial health window is scored now
         row = np.empty((1, kern.WIN_LEN))
-        kern._close_window(wacc, vec[lay.checks : lay.length], float(t[n - 1]), row[0])
+        kern._close_window(wacc, vec[lay.checks : lay.group_kinds], float(t[n - 1]), row[0])
         windows = np.concatenate([windows, row])
     vec.setflags(write=False)
     new_state = StmmaeState(version=STATE_VERSION, t_last_s=float(t[n - 1]), vector=vec)

@@ -18,7 +18,8 @@ airspeed and rate) runs over it in one batch. Scoring (per fault, interval ``[on
   its halves (its ``fault_cleared`` with ``isolated_as``) is one episode with the detection
   that follows it, whichever half that names (a wrong half counts against *isolated*);
 * *kind*: ``fault_kind`` of the episode's ``fault_classified`` (or ``fault_cleared``) event
-  against the truth (stuck vs square/sine = oscillating);
+  against the truth (stuck vs square/sine = oscillating); a fault never named but raised as
+  its group takes the kind of the group's first episode in the interval;
 * *wrong*: a detection covering no surface with a fault at that time while another fault is
   active (or ended less than 5 s before); *false alarm*: a detection with no fault active or
   ended less than 5 s before.
@@ -280,6 +281,10 @@ def run_flight(
             ]
             fr.redetections = max(0, len(cover) - 1 - len(handed))
             kind_event = judged.get((f.surface, mine[0].detail["detected_s"]))
+            fr.reported_kind = None if kind_event is None else kind_event.detail["fault_kind"]
+        elif cover:
+            first = cover[0].detail
+            kind_event = judged.get((first["component"], first["detected_s"]))
             fr.reported_kind = None if kind_event is None else kind_event.detail["fault_kind"]
         rec.faults.append(fr)
     if sc.category == "fault_free":

@@ -291,6 +291,8 @@ class Layout(NamedTuple):
     groups: int  # (s, G_LEN) group decision fields (twin halves detected together)
     operating: int  # (p,) smoothed measurements of the operating range
     checks: int  # (CK_LEN,) status checks (``CK_*``)
+    group_kinds: int  # (s, D_LEN) kind spans of the groups, one row per half (``D_*`` kind fields)
+    group_kind_blocks: int  # (s, KIND_BLOCKS) their block histories (rad)
     length: int
 
 
@@ -322,6 +324,8 @@ def state_layout(nh: int, na: int, p: int, m: int, s: int) -> Layout:
         applied + m + s * G_LEN,
         applied + m + s * G_LEN + p,
         applied + m + s * G_LEN + p + CK_LEN,
+        applied + m + s * G_LEN + p + CK_LEN + s * D_LEN,
+        applied + m + s * G_LEN + p + CK_LEN + s * (D_LEN + KIND_BLOCKS),
     )
 
 
@@ -1183,15 +1187,19 @@ def _write_group_event(
     h: int,
     a: int,
     isolated_as: int,
+    gkd: FloatArray,
 ) -> FloatArray:
     """Append the event row of the group of ``h`` and ``a`` (``isolated_as``: the half
-    detected, -1 for none); returns the array."""
+    detected, -1 for none), with the kind of its span (:func:`_group_kind`) once judged;
+    returns the array."""
     events = _append_event(events, n_ev, t, kind, h, gdec[h, G_ONSET_T], gdec[h, G_DETECTED_T])
     row = events[n_ev]
-    row[EV_SWING] = np.nan
-    row[EV_MEAN] = np.nan
-    row[EV_FAULT_KIND] = KIND_PENDING
-    row[EV_CORR] = np.nan
+    lead = group_kind_lead(gkd, h, a)
+    judged = gkd[lead, D_BLK_IDX] >= KIND_BLOCKS and gkd[lead, D_KIND] != KIND_PENDING
+    row[EV_SWING] = episode_swing(gkd, lead) if judged else np.nan
+    row[EV_MEAN] = episode_mean(gkd, lead) if judged else np.nan
+    row[EV_FAULT_KIND] = gkd[lead, D_KIND] if judged else KIND_PENDING
+    row[EV_CORR] = gkd[lead, D_KIND_CORR] if judged else np.nan
     row[EV_LLR] = gdec[h, G_LLR]
     row[EV_TWIN] = a + 1
     row[EV_ISOLATED_AS] = isolated_as + 1
@@ -1308,6 +1316,86 @@ def reset_group(gdec: FloatArray, h: int) -> None:
     gdec[h, G_BELOW_T] = np.nan
     gdec[h, G_LLR] = 0.0
     gdec[h, G_HALF_LLR] = 0.0
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def group_kind_lead(gkd: FloatArray, h: int, a: int) -> int:
+    """The half of the group of ``h`` and ``a`` whose history gives the group's kind: the one
+    whose filters held more probability over the span (summed in the ``D_LLR`` field of the
+    group's kind rows)."""
+    return a if gkd[a, D_LLR] > gkd[h, D_LLR] else h
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _group_kind_add(
+    gkd: FloatArray,
+    gkb: FloatArray,
+    h: int,
+    a: int,
+    t: float,
+    kval: FloatArray,
+    dvar: FloatArray,
+    pm: FloatArray,
+) -> None:
+    for x in (h, a):
+        _kind_add(gkd, gkb, x, t, kval[x], dvar[x])
+        gkd[x, D_LLR] += pm[x]
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _group_kind(
+    cfg: FloatArray,
+    gdec: FloatArray,
+    gkd: FloatArray,
+    gkb: FloatArray,
+    h: int,
+    a: int,
+    t: float,
+    kval: FloatArray,
+    dvar: FloatArray,
+    pm: FloatArray,
+    q: float,
+    outside: bool,
+    code: int,
+) -> bool:
+    """The kind span of the group of twin halves ``h`` and ``a`` at one sample, after
+    :func:`_decide_group` returned ``code``; returns True when the kind was judged at this
+    sample with the group still detected (the caller writes ``fault_classified``).
+
+    A group is raised when the new fault is in one of two halves whose effects the
+    measurements barely tell apart; which half is open, but whether it is stuck or oscillating
+    is not. Each half's kind value (:func:`kind_value`, the half's estimate with its twin at its
+    command) is recorded on its row of ``gkd``/``gkb`` (fields and blocks as a surface's kind
+    span) over the same span as a surface's: from the start of the group's detection run
+    (only its samples before the detection), then while the group's probability ``q`` is above
+    the onset level inside the operating range, up to ``fault_kind_window_s``. The span is
+    judged at its end, or at the group's clearance, on each row (:func:`_judge_kind`); the
+    group's kind is that of the half whose filters held more probability over the span
+    (:func:`group_kind_lead`). When a half is isolated, its own span gives the kind and the
+    group's is dropped."""
+    if code == EV_GROUP_ISOLATED:
+        return False
+    if gdec[h, G_ACTIVE] != 1.0 and code != EV_CLEARED:
+        if gdec[h, G_ABOVE_T] == t:
+            _start_run(gkd, h, t)
+            _start_run(gkd, a, t)
+        if math.isfinite(gdec[h, G_ABOVE_T]):
+            _group_kind_add(gkd, gkb, h, a, t, kval, dvar, pm)
+        return False
+    if not math.isfinite(gkd[h, D_KIND_T0]) or not gkd[h, D_BLK_IDX] < KIND_BLOCKS:
+        return False  # no span open (closed, or a group detected before the span was kept)
+    if code == EV_DETECTED:
+        _group_kind_add(gkd, gkb, h, a, t, kval, dvar, pm)
+        return False
+    if code != EV_CLEARED and t - gkd[h, D_KIND_T0] < cfg[CFG_KIND_WINDOW_S]:
+        if q > cfg[CFG_ONSET_P] and not outside:
+            _group_kind_add(gkd, gkb, h, a, t, kval, dvar, pm)
+        return False
+    for x in (h, a):
+        _kind_pad(cfg, gkd, gkb, x, t)
+        _judge_kind(cfg, gkd, gkb, x)
+        gkd[x, D_BLK_IDX] = KIND_BLOCKS  # span closed
+    return code != EV_CLEARED
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -1585,6 +1673,12 @@ def _bank_kernel(
     lay_op = lay_groups + ns * G_LEN
     ysm = st[lay_op : lay_op + p]  # smoothed measurements of the operating range (views)
     checks = st[lay_op + p : lay_op + p + CK_LEN]  # status checks (``CK_*``)
+    lay_gk = lay_op + p + CK_LEN
+    lay_gkb = lay_gk + ns * D_LEN
+    gkd = st[lay_gk:lay_gkb].copy().reshape((ns, D_LEN))
+    gkb = st[lay_gkb : lay_gkb + ns * KIND_BLOCKS].copy().reshape((ns, KIND_BLOCKS))
+    kv = np.empty(ns)  # kind value of each surface at this sample (kind_value)
+    dvar = np.empty(ns)  # posterior variance of its deflection estimate
     noise0 = np.nan
     groups_on = cfg[CFG_GROUP] != 0.0
     twin_of = np.full(ns, -1, dtype=np.int64)
@@ -1813,6 +1907,20 @@ def _bank_kernel(
                     iso_h = max(iso_h, half_odds(gdec, lead, h))
             if outside or settling or ending:
                 iso_level = np.inf  # no odds pass: detection withheld (fault_ending)
+            dvar[h] = vsum[h] / pm[h]
+            kv[h] = kind_value(
+                cfg,
+                dec,
+                bank.slot_surface,
+                xs,
+                ps,
+                probs,
+                n,
+                h,
+                dmean,
+                twin_of[h],
+                applied[surface_inputs[twin_of[h]]] if twin_of[h] >= 0 else np.nan,
+            )
             code = _decide(
                 cfg,
                 dec,
@@ -1824,25 +1932,13 @@ def _bank_kernel(
                 iso_h,
                 iso_level,
                 defl,
-                vsum[h] / pm[h],
+                dvar[h],
                 cmd,
                 a_smooth,
                 a_clear,
                 llr,
                 detection_hold(cfg, dec, h, twin_of[h], n_active_before),
-                kind_value(
-                    cfg,
-                    dec,
-                    bank.slot_surface,
-                    xs,
-                    ps,
-                    probs,
-                    n,
-                    h,
-                    dmean,
-                    twin_of[h],
-                    applied[surface_inputs[twin_of[h]]] if twin_of[h] >= 0 else np.nan,
-                ),
+                kv[h],
                 other_onset,
                 outside,
             )
@@ -1936,16 +2032,24 @@ def _bank_kernel(
                     outside or settling or ending or n_active_after >= n_slots,
                     n_active_after > 0,
                 )
+                classified = _group_kind(
+                    cfg, gdec, gkd, gkb, h, a, tk, kv, dvar, pm, q, outside, code
+                )
                 if code == EV_GROUP_ISOLATED:
                     half = h if dec[h, D_ACTIVE] == 1.0 else a
-                    events = _write_group_event(events, n_ev, tk, EV_CLEARED, gdec, h, a, half)
+                    events = _write_group_event(events, n_ev, tk, EV_CLEARED, gdec, h, a, half, gkd)
                     n_ev += 1
                     reset_group(gdec, h)
                 elif code != 0:
-                    events = _write_group_event(events, n_ev, tk, float(code), gdec, h, a, -1)
+                    events = _write_group_event(events, n_ev, tk, float(code), gdec, h, a, -1, gkd)
                     n_ev += 1
                     if code == EV_CLEARED:
                         reset_group(gdec, h)
+                if classified:
+                    events = _write_group_event(
+                        events, n_ev, tk, EV_CLASSIFIED, gdec, h, a, -1, gkd
+                    )
+                    n_ev += 1
                 if gdec[h, G_ACTIVE] == 1.0:
                     any_active = True
         row += ns
@@ -1983,4 +2087,6 @@ def _bank_kernel(
     st[lay_dec : lay_dec + ns * D_LEN] = dec.ravel()
     st[lay_kind:lay_win] = kbuf.ravel()
     st[lay_groups : lay_groups + ns * G_LEN] = gdec.ravel()
+    st[lay_gk:lay_gkb] = gkd.ravel()
+    st[lay_gkb : lay_gkb + ns * KIND_BLOCKS] = gkb.ravel()
     return windows[:n_win].copy(), events[:n_ev].copy(), 0

@@ -29,6 +29,7 @@ from estimators.models.small_uav import (
     trim_level,
 )
 from estimators.simulators.uav_closed_loop import Manoeuvre, SurfaceFault, simulate_flight
+from estimators.simulators.uav_scenarios import random_scenario
 
 ONE_FAULT = (SurfaceFault("aileron_right", 8.0, 20.0, "stuck", position_deg=12.0),)
 
@@ -636,12 +637,13 @@ def test_episode_statistics_are_precision_weighted() -> None:
 DATA = Path(__file__).parent / "data"
 
 
-@pytest.mark.parametrize("version", [1, 2, 3, 4, 5, 6, 7])
+@pytest.mark.parametrize("version", [1, 2, 3, 4, 5, 6, 7, 8])
 def test_older_state_fixtures_load_and_step(version) -> None:
     """States dumped by earlier code (version 1: equal-weight episode sums; version 2; version
     3, dumped before the detection evidence was re-based; version 4, before the group decision
     fields; version 5, before the operating range; version 6, before the halves' evidence of a
-    detected group; version 7, before the time of the last sample outside the range) load,
+    detected group; version 7, before the time of the last sample outside the range; version
+    8, before the groups' kind spans) load,
     keep their filters and probabilities, and step on: the stuck right aileron of the fixture's
     flight (6 s, stuck at +12 deg from 2 s) stays the active fault."""
     blob = (DATA / f"stmmae_state_v{version}.bin").read_bytes()
@@ -1805,6 +1807,52 @@ def test_no_group_is_raised_while_two_surfaces_are_in_fault() -> None:
     assert det == ["aileron", "aileron_right", "aileron_left"]
 
 
+@pytest.mark.parametrize(
+    ("seed", "kind"), [(392008, "stuck"), (392000, "oscillating")], ids=["stuck", "oscillating"]
+)
+def test_a_group_never_narrowed_to_its_half_gets_a_kind(seed: int, kind: str) -> None:
+    """Randomized pair flights where the second fault, in an elevator half, is raised as "one
+    of the two elevators" and never narrowed to its half (392008: the right half stuck at
+    -12.5 deg beside a stuck right aileron; 392000: the left half oscillating between -7.7 and
+    -2.1 deg, period 2.96 s, beside a stuck rudder): the group's episode gets the true kind in
+    a ``fault_classified`` event, the stuck one its position, and the status says it while the
+    half stays open. The same in three batches split inside the group's kind span."""
+    sc = random_scenario(seed, "pair")
+    t, ch, _ = sc.simulate()
+    config = stmmae.parse_config(
+        {"model": reference_model(1.0 / sc.sample_rate_hz, sc.airspeed_m_s)}
+    )
+    fault = sc.faults[1]
+    detected = None
+    for splits in ((), tuple(int(np.searchsorted(t, fault.start_s + d)) for d in (2.0, 4.0))):
+        state, _, _, events, _ = run(config, t, ch, splits)
+        group = [e for e in events if e.detail["component"] == "elevator"]
+        assert [e.kind for e in group] == ["fault_detected", "fault_classified", "fault_cleared"]
+        det, cls, _ = group
+        assert fault.start_s < det.t_s < fault.start_s + 1.5
+        assert cls.detail["fault_kind"] == kind
+        assert cls.t_s == pytest.approx(det.detail["onset_s"] + config.fault_kind_window_s, abs=0.7)
+        assert not any(
+            e.kind == "fault_detected" and e.detail["component"].startswith("elevator_")
+            for e in events
+        )
+        if kind == "stuck":
+            assert cls.detail["stuck_position_deg"] == pytest.approx(fault.position_deg, abs=0.5)
+        if detected is None:
+            detected = [(e.t_s, e.kind, e.detail) for e in events]
+        else:
+            assert [(e.t_s, e.kind, e.detail) for e in events] == detected
+    keep = t <= cls.t_s + 1.0
+    _, out = stmmae.step(
+        config,
+        stmmae.initial_state(config),
+        Batch(t_s=t[keep], channels={k: v[keep] for k, v in ch.items()}),
+    )
+    assert out.status is not None
+    reason = [r for r in out.status.reasons if "elevator_left or elevator_right" in r]
+    assert len(reason) == 1 and kind in reason[0] and "not isolated yet" in reason[0]
+
+
 def test_version_4_state_gets_fresh_group_fields() -> None:
     """Version 4 -> 5 appends the group decision fields as a fresh state has them (no group
     detected, no run open); every other part is kept, and the state is written back as
@@ -1851,7 +1899,7 @@ def test_version_6_state_gets_a_zero_half_evidence() -> None:
     lay = stmmae.layout(config)
     old_end = lay.groups + lay.s * 6
     # the tail up to version 7's four status checks (version 8 appends a fifth)
-    assert state.vector.shape == (old_end + lay.length - 1 - lay.operating,)
+    assert state.vector.shape == (old_end + lay.group_kinds - 1 - lay.operating,)
     parts = stmmae.state_parts(config, state)
     np.testing.assert_array_equal(parts.groups[:, kern.G_HALF_LLR], 0.0)
     np.testing.assert_array_equal(
@@ -1859,7 +1907,7 @@ def test_version_6_state_gets_a_zero_half_evidence() -> None:
     )
     vec = stmmae._current_vector(config, state)
     np.testing.assert_array_equal(vec[: lay.groups], state.vector[: lay.groups])
-    np.testing.assert_array_equal(vec[lay.operating : -1], state.vector[old_end:])
+    np.testing.assert_array_equal(vec[lay.operating : lay.group_kinds - 1], state.vector[old_end:])
     assert json.loads(stmmae.dump_state(state))["version"] == 6
 
 
@@ -1871,12 +1919,32 @@ def test_version_7_state_gets_an_unset_last_outside_time() -> None:
     state = stmmae.load_state(blob)
     assert state.layout_version == 7
     lay = stmmae.layout(config)
-    assert state.vector.shape == (lay.length - 1,)
+    assert state.vector.shape == (lay.group_kinds - 1,)
     parts = stmmae.state_parts(config, state)
     assert np.isnan(parts.last_outside_s[0])
     vec = stmmae._current_vector(config, state)
-    np.testing.assert_array_equal(vec[:-1], state.vector)
+    np.testing.assert_array_equal(vec[: lay.group_kinds - 1], state.vector)
     assert json.loads(stmmae.dump_state(state))["version"] == 7
+
+
+def test_version_8_state_gets_no_open_group_kind_span() -> None:
+    """Version 8 -> 9 appends the groups' kind spans as a fresh state has them (none open);
+    every other part is kept, and the state is written back as version 8 until it is
+    stepped."""
+    blob = (DATA / "stmmae_state_v8.bin").read_bytes()
+    config = stmmae.parse_config({"health_window_samples": 250})
+    state = stmmae.load_state(blob)
+    assert state.layout_version == 8
+    lay = stmmae.layout(config)
+    assert state.vector.shape == (lay.group_kinds,)
+    parts = stmmae.state_parts(config, state)
+    fresh = stmmae.state_parts(config, stmmae.initial_state(config))
+    np.testing.assert_array_equal(parts.group_kinds, fresh.group_kinds)
+    np.testing.assert_array_equal(parts.group_kind_blocks, fresh.group_kind_blocks)
+    assert np.isnan(parts.group_kinds[:, kern.D_KIND_T0]).all()
+    vec = stmmae._current_vector(config, state)
+    np.testing.assert_array_equal(vec[: lay.group_kinds], state.vector)
+    assert json.loads(stmmae.dump_state(state))["version"] == 8
 
 
 # ----------------------------------------------------------------------------- operating range
