@@ -1380,7 +1380,7 @@ def _component(config: StmmaeConfig, h: int, twin: int) -> tuple[str, list[str]]
 
 
 def _event(row: FloatArray, config: StmmaeConfig) -> EstimatorEvent:
-    """An event from its kernel row (a group's row has a pending kind and no position)."""
+    """An event from its kernel row (a group's row: the kind of the group's own span)."""
     kind = EVENT_KINDS[int(row[kern.EV_KIND])]
     twin = int(row[kern.EV_TWIN]) - 1
     detail = _detail(

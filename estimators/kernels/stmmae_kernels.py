@@ -1337,6 +1337,8 @@ def _group_kind_add(
     dvar: FloatArray,
     pm: FloatArray,
 ) -> None:
+    """Add this sample to both rows of the group's kind span: each half's kind value ``kval``
+    (posterior variance ``dvar``) and its filters' probability ``pm``."""
     for x in (h, a):
         _kind_add(gkd, gkb, x, t, kval[x], dvar[x])
         gkd[x, D_LLR] += pm[x]
