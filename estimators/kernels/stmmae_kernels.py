@@ -1327,24 +1327,6 @@ def group_kind_lead(gkd: FloatArray, h: int, a: int) -> int:
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _group_kind_add(
-    gkd: FloatArray,
-    gkb: FloatArray,
-    h: int,
-    a: int,
-    t: float,
-    kval: FloatArray,
-    dvar: FloatArray,
-    pm: FloatArray,
-) -> None:
-    """Add this sample to both rows of the group's kind span: each half's kind value ``kval``
-    (posterior variance ``dvar``) and its filters' probability ``pm``."""
-    for x in (h, a):
-        _kind_add(gkd, gkb, x, t, kval[x], dvar[x])
-        gkd[x, D_LLR] += pm[x]
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
 def _group_kind(
     cfg: FloatArray,
     gdec: FloatArray,
@@ -1377,27 +1359,30 @@ def _group_kind(
     group's is dropped."""
     if code == EV_GROUP_ISOLATED:
         return False
+    add = False
+    judge = False
     if gdec[h, G_ACTIVE] != 1.0 and code != EV_CLEARED:
         if gdec[h, G_ABOVE_T] == t:
             _start_run(gkd, h, t)
             _start_run(gkd, a, t)
-        if math.isfinite(gdec[h, G_ABOVE_T]):
-            _group_kind_add(gkd, gkb, h, a, t, kval, dvar, pm)
-        return False
-    if not math.isfinite(gkd[h, D_KIND_T0]) or not gkd[h, D_BLK_IDX] < KIND_BLOCKS:
+        add = math.isfinite(gdec[h, G_ABOVE_T])  # the run's samples before the detection
+    elif not math.isfinite(gkd[h, D_KIND_T0]) or not gkd[h, D_BLK_IDX] < KIND_BLOCKS:
         return False  # no span open (closed, or a group detected before the span was kept)
-    if code == EV_DETECTED:
-        _group_kind_add(gkd, gkb, h, a, t, kval, dvar, pm)
-        return False
-    if code != EV_CLEARED and t - gkd[h, D_KIND_T0] < cfg[CFG_KIND_WINDOW_S]:
-        if q > cfg[CFG_ONSET_P] and not outside:
-            _group_kind_add(gkd, gkb, h, a, t, kval, dvar, pm)
-        return False
+    elif code == EV_DETECTED:
+        add = True
+    elif code != EV_CLEARED and t - gkd[h, D_KIND_T0] < cfg[CFG_KIND_WINDOW_S]:
+        add = q > cfg[CFG_ONSET_P] and not outside
+    else:
+        judge = True
     for x in (h, a):
-        _kind_pad(cfg, gkd, gkb, x, t)
-        _judge_kind(cfg, gkd, gkb, x)
-        gkd[x, D_BLK_IDX] = KIND_BLOCKS  # span closed
-    return code != EV_CLEARED
+        if add:
+            _kind_add(gkd, gkb, x, t, kval[x], dvar[x])
+            gkd[x, D_LLR] += pm[x]
+        elif judge:
+            _kind_pad(cfg, gkd, gkb, x, t)
+            _judge_kind(cfg, gkd, gkb, x)
+            gkd[x, D_BLK_IDX] = KIND_BLOCKS  # span closed
+    return judge and code != EV_CLEARED
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
