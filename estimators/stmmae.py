@@ -1434,17 +1434,15 @@ def active_faults(config: StmmaeConfig, state: StmmaeState) -> list[dict[str, An
     for h, g in enumerate(parts.groups):
         if g[kern.G_ACTIVE] == 1.0:
             a = kern.twin_index(arr.collinear, h)
-            lead = kern.group_kind_lead(gkd, h, a)
-            judged = gkd[lead, kern.D_BLK_IDX] >= kern.KIND_BLOCKS
-            code = gkd[lead, kern.D_KIND] if judged else kern.KIND_PENDING
+            r = kern.group_kind_row(gkd, h, a)
             nan = math.nan  # no kind, position or swing before the group's kind is judged
             faults.append(
                 _detail(
                     *_component(config, h, a),
-                    code,
-                    kern.episode_mean(gkd, lead) if judged else nan,
-                    kern.episode_swing(gkd, lead) if judged else nan,
-                    gkd[lead, kern.D_KIND_CORR] if judged else nan,
+                    gkd[r, kern.D_KIND] if r >= 0 else kern.KIND_PENDING,
+                    kern.episode_mean(gkd, r) if r >= 0 else nan,
+                    kern.episode_swing(gkd, r) if r >= 0 else nan,
+                    gkd[r, kern.D_KIND_CORR] if r >= 0 else nan,
                     g[kern.G_ONSET_T],
                     g[kern.G_DETECTED_T],
                 )

@@ -955,9 +955,10 @@ def _decide(
     probability of being the only new fault against its strongest competitor's) above
     ``iso_level`` (``CFG_DETECT_P``, ``CFG_GROUP_ISO`` while the surface's group is detected and
     no other surface is in fault, infinite while outside the operating range, less than
-    ``CFG_RANGE_SETTLE_S`` back inside it, or while a fault ends), the smoothed deflection estimate more than ``CFG_MIN_ERR`` from the command, and at
-    the end the log-likelihood ratio between the nested families (:func:`_relevant_loglik`)
-    summed over the run at least ``CFG_MIN_LLR``.
+    ``CFG_RANGE_SETTLE_S`` back inside it, or while a fault ends), the smoothed deflection
+    estimate more than ``CFG_MIN_ERR`` from the command, and at the end the log-likelihood
+    ratio between the nested families (:func:`_relevant_loglik`) summed over the run at least
+    ``CFG_MIN_LLR``.
     ``kval`` is the value the kind history records (``defl``, or the estimate conditioned on
     its twin's known position, :func:`kind_value`); ``other_onset`` the latest open onset of a
     surface or group not in fault (-inf: none), for which the end of the kind span waits when
@@ -1194,12 +1195,11 @@ def _write_group_event(
     returns the array."""
     events = _append_event(events, n_ev, t, kind, h, gdec[h, G_ONSET_T], gdec[h, G_DETECTED_T])
     row = events[n_ev]
-    lead = group_kind_lead(gkd, h, a)
-    judged = gkd[lead, D_BLK_IDX] >= KIND_BLOCKS and gkd[lead, D_KIND] != KIND_PENDING
-    row[EV_SWING] = episode_swing(gkd, lead) if judged else np.nan
-    row[EV_MEAN] = episode_mean(gkd, lead) if judged else np.nan
-    row[EV_FAULT_KIND] = gkd[lead, D_KIND] if judged else KIND_PENDING
-    row[EV_CORR] = gkd[lead, D_KIND_CORR] if judged else np.nan
+    r = group_kind_row(gkd, h, a)
+    row[EV_SWING] = episode_swing(gkd, r) if r >= 0 else np.nan
+    row[EV_MEAN] = episode_mean(gkd, r) if r >= 0 else np.nan
+    row[EV_FAULT_KIND] = gkd[r, D_KIND] if r >= 0 else KIND_PENDING
+    row[EV_CORR] = gkd[r, D_KIND_CORR] if r >= 0 else np.nan
     row[EV_LLR] = gdec[h, G_LLR]
     row[EV_TWIN] = a + 1
     row[EV_ISOLATED_AS] = isolated_as + 1
@@ -1324,6 +1324,16 @@ def group_kind_lead(gkd: FloatArray, h: int, a: int) -> int:
     whose filters held more probability over the span (summed in the ``D_LLR`` field of the
     group's kind rows)."""
     return a if gkd[a, D_LLR] > gkd[h, D_LLR] else h
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def group_kind_row(gkd: FloatArray, h: int, a: int) -> int:
+    """The row of ``gkd`` holding the judged kind of the group of ``h`` and ``a`` (its lead
+    half's, :func:`group_kind_lead`), or -1 while its span is open or left it pending."""
+    lead = group_kind_lead(gkd, h, a)
+    if gkd[lead, D_BLK_IDX] >= KIND_BLOCKS and gkd[lead, D_KIND] != KIND_PENDING:
+        return lead
+    return -1
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
