@@ -1402,10 +1402,34 @@ def _event(row: FloatArray, config: StmmaeConfig) -> EstimatorEvent:
     return EstimatorEvent(t_s=float(row[kern.EV_T]), kind=kind, detail=detail)
 
 
+def _events(config: StmmaeConfig, state: StmmaeState, rows: FloatArray) -> list[EstimatorEvent]:
+    """The batch's events from their kernel rows, in order, each with ``kind_beside``: the
+    faults in place at that moment (those of ``state``, the state before the batch, then
+    opened and closed by the events before it) that were detected before its onset, as
+    :func:`active_faults` gives them in the diagnosis."""
+    if len(rows) == 0:
+        return []
+    in_fault = {f["component"]: f for f in active_faults(config, state)}
+    events = []
+    for row in rows:
+        ev = _event(row, config)
+        d = ev.detail
+        d["kind_beside"] = kind_beside(list(in_fault.values()), d)
+        if ev.kind == "fault_detected":
+            in_fault[d["component"]] = d
+        elif ev.kind == "fault_cleared":
+            in_fault.pop(d["component"], None)
+        events.append(ev)
+    return events
+
+
 def _fault_reason(f: dict[str, Any]) -> str:
     """Status reason of an active fault, from the same detail as its events."""
     which = " or ".join(f["candidates"])
     open_half = " (which one: not isolated yet)" if len(f["candidates"]) > 1 else ""
+    beside = f.get("kind_beside")
+    if beside:
+        open_half += f" (kind judged beside {' and '.join(beside)} in fault: less certain)"
     if f["fault_kind"] == "stuck":
         pos = f["stuck_position_deg"]
         where = "unknown position" if pos is None else f"{pos:.1f} deg"
@@ -1447,7 +1471,27 @@ def active_faults(config: StmmaeConfig, state: StmmaeState) -> list[dict[str, An
                     g[kern.G_DETECTED_T],
                 )
             )
+    for f in faults:
+        f["kind_beside"] = kind_beside(faults, f)
     return faults
+
+
+def kind_beside(in_fault: list[dict[str, Any]], f: dict[str, Any]) -> list[str]:
+    """The other faults in ``in_fault`` (details with ``component``, ``candidates`` and
+    ``detected_s``) that were detected before the onset of fault ``f``, a group and its own
+    halves left out: ``f``'s kind is judged on an estimate into which their deflections leak,
+    and is less certain (docs/methods-stmmae.md, "Outputs")."""
+    onset = f["onset_s"]
+    if onset is None:
+        return []
+    mine = set(f["candidates"])
+    return sorted(
+        o["component"]
+        for o in in_fault
+        if not mine & set(o["candidates"])
+        and o["detected_s"] is not None
+        and o["detected_s"] < onset
+    )
 
 
 def outside_operating_range(config: StmmaeConfig, state: StmmaeState) -> list[str]:
@@ -1634,7 +1678,7 @@ def step(config: StmmaeConfig, state: StmmaeState, batch: Batch) -> tuple[Stmmae
     outputs = StepOutputs(
         samples={name: samples[i] for i, name in enumerate(names)},
         health=[_health(row, config) for row in windows],
-        events=[_event(row, config) for row in events],
+        events=_events(config, state, events),
         diagnosis=diagnosis(config, new_state),
         status=status_report(config, new_state),
     )

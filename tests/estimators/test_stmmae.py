@@ -1104,6 +1104,45 @@ def test_a_second_detection_cuts_the_first_faults_kind_span() -> None:
     assert corr_cut > -0.35 and corr_uncut < corr_cut - 0.1
 
 
+def test_a_kind_judged_beside_a_fault_in_place_says_so(flight) -> None:
+    """Rudder stuck from 3 s, left aileron oscillating from 6.5 s: the aileron's kind is judged
+    while the rudder, detected before the aileron's onset, is in fault, so its events, its
+    entry in ``active_faults`` and its status reason name the rudder in ``kind_beside`` (its
+    estimate takes in the rudder's deflection); the rudder's own kind, judged on its history
+    before the aileron's onset, names none. The list is rebuilt from the state across a batch
+    split (the same events); the single fault of ``flight`` names none."""
+    faults = (
+        SurfaceFault("rudder", 3.0, 30.0, "stuck", position_deg=7.7),
+        SurfaceFault(
+            "aileron_left", 6.5, 30.0, "sine", center_deg=0.0, amplitude_deg=6.0, period_s=1.0
+        ),
+    )
+    t, ch, _ = simulate_flight(13.0, faults=faults, seed=5)
+    config = stmmae.parse_config({})
+    _, _, _, events, out = run(config, t, ch)
+    cls = {e.detail["component"]: e for e in events if e.kind == "fault_classified"}
+    det = {e.detail["component"]: e for e in events if e.kind == "fault_detected"}
+    assert cls["aileron_left"].detail["kind_beside"] == ["rudder"]
+    assert det["aileron_left"].detail["kind_beside"] == ["rudder"]
+    assert cls["rudder"].detail["kind_beside"] == []
+    assert det["rudder"].detail["kind_beside"] == []
+    active = {f["component"]: f for f in out.diagnosis.detail["active_faults"]}
+    assert active["aileron_left"]["kind_beside"] == ["rudder"]
+    assert active["rudder"]["kind_beside"] == []
+    reasons = {r.split()[1]: r for r in out.status.reasons if r.startswith("fault:")}
+    assert "beside rudder in fault: less certain" in reasons["aileron_left"]
+    assert "beside" not in reasons["rudder"]
+    split = int(np.searchsorted(t, cls["aileron_left"].t_s - 1.0))
+    _, _, _, split_events, _ = run(config, t, ch, splits=(split,))
+    assert [(e.t_s, e.kind, e.detail) for e in split_events] == [
+        (e.t_s, e.kind, e.detail) for e in events
+    ]
+    t1, ch1, _ = flight
+    _, _, _, single, out1 = run(config, t1, ch1)
+    assert single and all(e.detail["kind_beside"] == [] for e in single)
+    assert all("beside" not in r for r in out1.status.reasons)
+
+
 def test_a_kind_span_waits_for_a_detection_whose_onset_lies_inside_it() -> None:
     """Left aileron oscillating from 3 s, right aileron stuck from 8.05 s: the right half's
     onset (8.17 s) falls inside the left half's kind span, which ends at 8.5 s, before the
