@@ -1426,22 +1426,18 @@ def _events(config: StmmaeConfig, state: StmmaeState, rows: FloatArray) -> list[
 def _fault_reason(f: dict[str, Any]) -> str:
     """Status reason of an active fault, from the same detail as its events."""
     which = " or ".join(f["candidates"])
-    open_half = " (which one: not isolated yet)" if len(f["candidates"]) > 1 else ""
-    beside = f.get("kind_beside")
-    if beside:
-        open_half += f" (kind judged beside {' and '.join(beside)} in fault: less certain)"
+    notes = " (which one: not isolated yet)" if len(f["candidates"]) > 1 else ""
+    if f.get("kind_beside"):
+        notes += f" (kind judged beside {' and '.join(f['kind_beside'])} in fault: less certain)"
     if f["fault_kind"] == "stuck":
         pos = f["stuck_position_deg"]
         where = "unknown position" if pos is None else f"{pos:.1f} deg"
-        return f"fault: {which} stuck at {where}{open_half}"
+        return f"fault: {which} stuck at {where}{notes}"
     if f["fault_kind"] == "oscillating":
         swing = f["deflection_swing_deg"]
-        return f"fault: {which} oscillating, swing {swing:.1f} deg{open_half}"
+        return f"fault: {which} oscillating, swing {swing:.1f} deg{notes}"
     if len(f["candidates"]) > 1:
-        return (
-            f"fault: {' or '.join(f['candidates'])} not following its command (which one: "
-            "not isolated yet)"
-        )
+        return f"fault: {which} not following its command (which one: not isolated yet)"
     return f"fault: {f['component']} not following its command (stuck or oscillating: pending)"
 
 

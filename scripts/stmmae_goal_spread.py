@@ -78,17 +78,11 @@ def run_set(offset: int, flights: int, cache: Path | None) -> SetResult:
         singles=len(singles),
         singles_ok=sum(r.isolated for r in singles),
         pairs=len(pairs),
-        pairs_ok=sum(all(r.isolated for r in f.faults) for f in pairs),
+        pairs_ok=vr.pairs_isolated(pairs),
         faults=len(faults),
-        kinds_ok=sum(r.reported_kind == vr.true_kind(r.kind) for r in faults),
-        stuck_delays=[
-            math.inf if r.delay_s is None else r.delay_s for r in singles if r.kind == "stuck"
-        ],
-        stuck_visible=[
-            math.inf if r.delay_s is None else max(r.delay_s - r.hidden_s, 0.0)
-            for r in singles
-            if r.kind == "stuck"
-        ],
+        kinds_ok=sum(vr.kind_ok(r) for r in faults),
+        stuck_delays=vr.stuck_delays(singles),
+        stuck_visible=vr.stuck_delays(singles, visible=True),
         wrong=sum(f.wrong for f in recs),
         no_fault=sum(f.false_alarms for f in recs),
     )

@@ -349,8 +349,24 @@ def _delays(recs: list[FaultRecord], isolation: bool = False) -> str:
     return f"{np.median(d):.2f} / {_q(d, 95):.2f} / {max(d):.2f}"
 
 
-def _kind_ok(r: FaultRecord) -> bool:
+def kind_ok(r: FaultRecord) -> bool:
+    """The kind reported for the fault is its true kind."""
     return r.reported_kind == true_kind(r.kind)
+
+
+def pairs_isolated(pairs: list[FlightRecord]) -> int:
+    """Pair flights whose two faults are both isolated."""
+    return sum(all(r.isolated for r in f.faults) for f in pairs)
+
+
+def stuck_delays(recs: list[FaultRecord], visible: bool = False) -> list[float]:
+    """Detection delays of the stuck faults among ``recs`` (a fault never detected counts as
+    infinite); ``visible``: counted from the end of the fault's hidden span (*hidden*)."""
+    return [
+        math.inf if r.delay_s is None else max(r.delay_s - (r.hidden_s if visible else 0.0), 0.0)
+        for r in recs
+        if r.kind == "stuck"
+    ]
 
 
 def _row(label: str, recs: list[FaultRecord]) -> str:
@@ -361,7 +377,7 @@ def _row(label: str, recs: list[FaultRecord]) -> str:
     return (
         f"| {label} | {n} | {_pct(iso, n)} | {_pct(strict, n)} | {_delays(recs)} | "
         f"{_delays(recs, isolation=True)} | "
-        f"{sum(r.redetections for r in recs)} | {_pct(sum(_kind_ok(r) for r in judged), len(judged))} |"
+        f"{sum(r.redetections for r in recs)} | {_pct(sum(kind_ok(r) for r in judged), len(judged))} |"
     )
 
 
@@ -394,13 +410,12 @@ def report(
     p_recs = [r for f in pairs for r in f.faults]
     all_recs = s_recs + p_recs
     stuck = [r for r in s_recs if r.kind == "stuck"]
-    # a stuck fault never detected counts as an infinite delay
-    stuck_d = [math.inf if r.delay_s is None else r.delay_s for r in stuck]
+    stuck_d = stuck_delays(s_recs)
     stuck_iso = [math.inf if r.isolation_delay_s is None else r.isolation_delay_s for r in stuck]
-    stuck_vis = [max(d - r.hidden_s, 0.0) for d, r in zip(stuck_d, stuck, strict=True)]
+    stuck_vis = stuck_delays(s_recs, visible=True)
     hidden = [r for r in stuck if r.hidden_s > HIDDEN_REPORT_S]
     judged = [r for r in all_recs if r.reported_kind is not None]
-    pair_ok = sum(all(r.isolated for r in f.faults) for f in pairs)
+    pair_ok = pairs_isolated(pairs)
     free_h = sum(f.scenario.duration_s for f in free) / 3600.0
     free_fa = sum(f.false_alarms for f in free)
     single_iso = sum(r.isolated for r in s_recs)
@@ -414,7 +429,7 @@ def report(
     stuck_med, stuck_p95 = (
         (float(np.median(stuck_d)), _q(stuck_d, 95)) if stuck_d else (math.nan, math.nan)
     )
-    kind_rate = sum(_kind_ok(r) for r in judged) / max(len(all_recs), 1)
+    kind_rate = sum(kind_ok(r) for r in judged) / max(len(all_recs), 1)
     lines = [
         BEGIN,
         "### Randomized flights",
@@ -488,7 +503,7 @@ def report(
         f"| (no goal) | {float(np.median(stuck_vis)) if stuck_vis else math.nan:.2f} / "
         f"{_q(stuck_vis, 95):.2f} s | |",
         f"| stuck vs oscillating right (of all faults) | >= 95 % | "
-        f"{_pct(sum(_kind_ok(r) for r in judged), len(all_recs))} | "
+        f"{_pct(sum(kind_ok(r) for r in judged), len(all_recs))} | "
         f"{met(kind_rate >= GOALS['kind'])} |",
         f"| false alarms, fault-free | 0 in >= 5 h | {free_fa} in {free_h:.2f} h | "
         f"{met(free_fa == 0 and free_h >= 5.0)} |",
@@ -598,7 +613,7 @@ def report(
                         f"* {f.scenario.category} {f.scenario.seed}: {describe(fault)}; {d}"
                     )
         lines.append("")
-    wrong_kind = [r for r in judged if not _kind_ok(r)]
+    wrong_kind = [r for r in judged if not kind_ok(r)]
     if wrong_kind:
         lines.append(
             "Kind wrong: "
