@@ -1415,6 +1415,7 @@ def _events(config: StmmaeConfig, state: StmmaeState, rows: FloatArray) -> list[
         ev = _event(row, config)
         d = ev.detail
         d["kind_beside"] = kind_beside(list(in_fault.values()), d)
+        d["twin_in_fault"] = twin_in_fault(config, list(in_fault.values()), d)
         if ev.kind == "fault_detected":
             in_fault[d["component"]] = d
         elif ev.kind == "fault_cleared":
@@ -1429,6 +1430,11 @@ def _fault_reason(f: dict[str, Any]) -> str:
     notes = " (which one: not isolated yet)" if len(f["candidates"]) > 1 else ""
     if f.get("kind_beside"):
         notes += f" (kind judged beside {' and '.join(f['kind_beside'])} in fault: less certain)"
+    if f.get("twin_in_fault"):
+        notes += (
+            f" (its twin {f['twin_in_fault']} in fault too: the data determine mainly the sum of"
+            " the two halves' deflections, so one of the two may not be in fault)"
+        )
     if f["fault_kind"] == "stuck":
         pos = f["stuck_position_deg"]
         where = "unknown position" if pos is None else f"{pos:.1f} deg"
@@ -1438,7 +1444,10 @@ def _fault_reason(f: dict[str, Any]) -> str:
         return f"fault: {which} oscillating, swing {swing:.1f} deg{notes}"
     if len(f["candidates"]) > 1:
         return f"fault: {which} not following its command (which one: not isolated yet)"
-    return f"fault: {f['component']} not following its command (stuck or oscillating: pending)"
+    return (
+        f"fault: {f['component']} not following its command (stuck or oscillating: pending)"
+        f"{notes}"
+    )
 
 
 def active_faults(config: StmmaeConfig, state: StmmaeState) -> list[dict[str, Any]]:
@@ -1469,7 +1478,25 @@ def active_faults(config: StmmaeConfig, state: StmmaeState) -> list[dict[str, An
             )
     for f in faults:
         f["kind_beside"] = kind_beside(faults, f)
+        f["twin_in_fault"] = twin_in_fault(config, faults, f)
     return faults
+
+
+def twin_in_fault(
+    config: StmmaeConfig, in_fault: list[dict[str, Any]], f: dict[str, Any]
+) -> str | None:
+    """The twin half of fault ``f`` when ``f`` names one half of a split surface and its twin
+    is in ``in_fault`` too (details with ``component``), else None. The data determine mainly the
+    sum of two twin halves' deflections: with both in fault, one of them often is not
+    (docs/methods-stmmae.md, "Outputs")."""
+    surfaces = config.model.surfaces
+    if len(f["candidates"]) != 1 or f["component"] not in surfaces:
+        return None
+    a = kern.twin_index(config.arrays.collinear, surfaces.index(f["component"]))
+    if a < 0:
+        return None
+    twin = surfaces[a]
+    return twin if any(o["component"] == twin for o in in_fault) else None
 
 
 def kind_beside(in_fault: list[dict[str, Any]], f: dict[str, Any]) -> list[str]:

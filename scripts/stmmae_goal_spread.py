@@ -61,6 +61,8 @@ class SetResult:
     stuck_visible: list[float]  # the same, counted once the fault is visible (``hidden_s``)
     wrong: int
     no_fault: int
+    twins_both: int  # spans with both halves of a split surface in fault
+    twins_one: int  # of which only one half had a fault
 
 
 def run_set(offset: int, flights: int, cache: Path | None) -> SetResult:
@@ -85,6 +87,8 @@ def run_set(offset: int, flights: int, cache: Path | None) -> SetResult:
         stuck_visible=vr.stuck_delays(singles, visible=True),
         wrong=sum(f.wrong for f in recs),
         no_fault=sum(f.false_alarms for f in recs),
+        twins_both=sum(f.twins_both for f in recs),
+        twins_one=sum(f.twins_one for f in recs),
     )
 
 
@@ -176,6 +180,14 @@ def report(results: list[SetResult], flights: int) -> list[str]:
             "`validate_stmmae_random.py`, *hidden*): 95th percentile "
             f"{np.percentile(v, 95):.2f} s; sets above 0.5 s: {late_v} of {len(results)}.",
         ]
+    both = sum(r.twins_both for r in results)
+    one = sum(r.twins_one for r in results)
+    lines += [
+        "",
+        f"Both halves of a split surface in fault together (`validate_stmmae_random.py`, *both "
+        f"halves*): {both} times over all sets, {one} of them with a fault of only one half "
+        f"({100.0 * one / max(both, 1):.0f} %); the status and `twin_in_fault` say so.",
+    ]
     lines.append(END)
     return lines
 

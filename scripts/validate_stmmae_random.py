@@ -28,7 +28,11 @@ airspeed and rate) runs over it in one batch. Scoring (per fault, interval ``[on
   its group takes the kind of the group's first episode in the interval;
 * *wrong*: a detection covering no surface with a fault at that time while another fault is
   active (or ended less than 5 s before); *false alarm*: a detection with no fault active or
-  ended less than 5 s before.
+  ended less than 5 s before;
+* *both halves*: a detection of a half while its twin is in fault (its ``twin_in_fault``)
+  opens a span with both halves in fault, up to the first clearance of either; *one half
+  faulty*: a fault of only one of them is active in that span (or ended less than 5 s before
+  it began).
 
 Fault-free flights also report the margins of the detection gates (how often each condition
 held alone).
@@ -122,6 +126,8 @@ class FlightRecord:
     samples: int = 0
     seconds: float = 0.0
     gate_margins: dict[str, float] = field(default_factory=dict)
+    twins_both: int = 0  # spans with both halves of a split surface in fault
+    twins_one: int = 0  # of which only one half had a fault
 
 
 def config_for(sc: FlightScenario, extra: dict[str, Any] | None = None) -> stmmae.StmmaeConfig:
@@ -311,9 +317,31 @@ def run_flight(
             kind_event = judged.get((first["component"], first["detected_s"]))
             fr.reported_kind = None if kind_event is None else kind_event.detail["fault_kind"]
         rec.faults.append(fr)
+    rec.twins_both, rec.twins_one = both_halves(sc, events, float(t[-1]))
     if sc.category == "fault_free":
         rec.gate_margins = _gate_margins(config, t, ch, out)
     return rec
+
+
+def both_halves(sc: FlightScenario, events: list[EstimatorEvent], t_end: float) -> tuple[int, int]:
+    """Spans with both halves of a split surface in fault (a detection whose
+    ``twin_in_fault`` names the other half, up to the first clearance of either, or ``t_end``),
+    and how many of them had a fault of only one of the two halves active."""
+    both = one = 0
+    for i, e in enumerate(events):
+        twin = e.detail.get("twin_in_fault")
+        if e.kind != "fault_detected" or twin is None:
+            continue
+        halves = {e.detail["component"], twin}
+        s0, s1 = e.t_s, t_end
+        for c in events[i + 1 :]:
+            if c.kind == "fault_cleared" and c.detail["component"] in halves:
+                s1 = c.t_s
+                break
+        faulty = {f.surface for f in sc.faults if f.start_s < s1 and f.end_s + GRACE_S > s0}
+        both += 1
+        one += len(halves & faulty) == 1
+    return both, one
 
 
 # ----------------------------------------------------------------------------- report
@@ -512,7 +540,10 @@ def report(
         f"Other counts: wrong-surface detections {sum(f.wrong for f in singles)} in the "
         f"single-fault flights and {sum(f.wrong for f in pairs)} in the pair flights; false "
         f"alarms (no fault active) {sum(f.false_alarms for f in singles + pairs)} in the faulty "
-        f"flights. Bank cost: {1e6 * all_sec / max(all_samples, 1):.0f} us per sample over "
+        f"flights. Both halves of a split surface in fault together "
+        f"{sum(f.twins_both for f in singles + pairs)} times, "
+        f"{sum(f.twins_one for f in singles + pairs)} of them with a fault of only one half "
+        f"(*both halves*; the status then says one of the two may not be in fault). Bank cost: {1e6 * all_sec / max(all_samples, 1):.0f} us per sample over "
         f"{all_samples} samples (16 filters with pair hypotheses; shared machine). Wall time "
         f"{wall_s / 60:.0f} min.",
         "",

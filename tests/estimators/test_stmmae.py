@@ -1143,6 +1143,46 @@ def test_a_kind_judged_beside_a_fault_in_place_says_so(flight) -> None:
     assert all("beside" not in r for r in out1.status.reasons)
 
 
+def test_both_halves_of_a_split_surface_in_fault_say_one_may_not_be(flight) -> None:
+    """Left aileron stuck from 3 s, right aileron stuck from 6 s: once both halves are in fault,
+    each one's entry in ``active_faults`` and its status reason name its twin in
+    ``twin_in_fault`` (only the sum of the two deflections is well determined, and with both in
+    fault one of them often is not); so do the events from the right half's detection on, not
+    the left half's detection, made while it was alone. A batch split gives the same events; the
+    single fault of ``flight`` names no twin."""
+    faults = (
+        SurfaceFault("aileron_left", 3.0, 30.0, "stuck", position_deg=-10.0),
+        SurfaceFault("aileron_right", 6.0, 30.0, "stuck", position_deg=8.0),
+    )
+    t, ch, _ = simulate_flight(11.0, faults=faults, seed=5)
+    config = stmmae.parse_config({})
+    _, _, _, events, out = run(config, t, ch)
+    det = {e.detail["component"]: e for e in events if e.kind == "fault_detected"}
+    assert det["aileron_left"].detail["twin_in_fault"] is None
+    assert det["aileron_right"].detail["twin_in_fault"] == "aileron_left"
+    later = [e for e in events if e.t_s >= det["aileron_right"].t_s]
+    assert {e.detail["component"] for e in later} == {"aileron_left", "aileron_right"}
+    assert all(
+        e.detail["twin_in_fault"] == ("aileron_right" if c == "aileron_left" else "aileron_left")
+        for e in later
+        for c in [e.detail["component"]]
+    )
+    active = {f["component"]: f["twin_in_fault"] for f in out.diagnosis.detail["active_faults"]}
+    assert active == {"aileron_left": "aileron_right", "aileron_right": "aileron_left"}
+    reasons = [r for r in out.status.reasons if r.startswith("fault:")]
+    assert len(reasons) == 2
+    assert all("in fault too" in r and "one of the two may not be in fault" in r for r in reasons)
+    split = int(np.searchsorted(t, det["aileron_right"].t_s - 0.5))
+    _, _, _, split_events, _ = run(config, t, ch, splits=(split,))
+    assert [(e.t_s, e.kind, e.detail) for e in split_events] == [
+        (e.t_s, e.kind, e.detail) for e in events
+    ]
+    t1, ch1, _ = flight
+    _, _, _, single, out1 = run(config, t1, ch1)
+    assert single and all(e.detail["twin_in_fault"] is None for e in single)
+    assert all("in fault too" not in r for r in out1.status.reasons)
+
+
 def test_a_kind_span_waits_for_a_detection_whose_onset_lies_inside_it() -> None:
     """Left aileron oscillating from 3 s, right aileron stuck from 8.05 s: the right half's
     onset (8.17 s) falls inside the left half's kind span, which ends at 8.5 s, before the

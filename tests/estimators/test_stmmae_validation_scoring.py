@@ -16,7 +16,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
 import stmmae_goal_spread as spread  # noqa: E402
 import validate_stmmae_random as vr  # noqa: E402
 
+from estimators.base import EstimatorEvent  # noqa: E402
 from estimators.simulators.uav_closed_loop import SurfaceFault  # noqa: E402
+from estimators.simulators.uav_scenarios import FlightScenario  # noqa: E402
 
 
 def _command(deg: np.ndarray) -> dict[str, np.ndarray]:
@@ -51,3 +53,41 @@ def test_wilson_interval_and_the_chance_a_set_misses_a_goal() -> None:
     assert spread.miss_chance(p, 120, 0.95) == pytest.approx(want, rel=1e-9)
     assert spread.miss_chance(1.0, 120, 0.95) == 0.0
     assert spread.miss_chance(0.99, 40, 0.99) == pytest.approx(1 - 0.99**40)
+
+
+def _ev(t_s: float, kind: str, component: str, twin: str | None = None) -> EstimatorEvent:
+    return EstimatorEvent(
+        t_s=t_s, kind=kind, detail={"component": component, "twin_in_fault": twin}
+    )
+
+
+def test_both_halves_in_fault_counts_the_spans_with_only_one_half_faulty() -> None:
+    """A right aileron raised at 12 s beside the left (in fault from 10 s), cleared at 15 s:
+    one span 12-15 s, with only the left faulty (the right's fault begins at 30 s); the right
+    raised again at 31 s with its own fault active: a second span, open to the flight's end,
+    both faulty. A detection with no twin in fault opens none."""
+    faults = (
+        SurfaceFault("aileron_left", 10.0, 40.0, "stuck", position_deg=-8.0),
+        SurfaceFault("aileron_right", 30.0, 40.0, "stuck", position_deg=6.0),
+    )
+    sc = FlightScenario(
+        seed=0,
+        category="pair",
+        duration_s=60.0,
+        sample_rate_hz=100.0,
+        airspeed_m_s=25.0,
+        faults=faults,
+        manoeuvres=(),
+    )
+    events = [
+        _ev(10.2, "fault_detected", "aileron_left"),
+        _ev(12.0, "fault_detected", "aileron_right", "aileron_left"),
+        _ev(15.0, "fault_cleared", "aileron_right", "aileron_left"),
+        _ev(31.0, "fault_detected", "aileron_right", "aileron_left"),
+    ]
+    assert vr.both_halves(sc, events, 60.0) == (2, 1)
+    # the right half's fault begins within the span (at 14 s): both faulty
+    early = (faults[0], SurfaceFault("aileron_right", 14.0, 40.0, "stuck", position_deg=6.0))
+    sc_early = FlightScenario(**{**sc.__dict__, "faults": early})
+    assert vr.both_halves(sc_early, events, 60.0) == (2, 0)
+    assert vr.both_halves(sc, events[:1], 60.0) == (0, 0)
