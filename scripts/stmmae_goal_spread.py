@@ -29,6 +29,7 @@ faults) has its own.
 from __future__ import annotations
 
 import math
+import multiprocessing
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -92,6 +93,10 @@ def run_set(offset: int, flights: int, cache: Path | None) -> SetResult:
     )
 
 
+def _run_set_args(args: tuple[int, int, Path | None]) -> SetResult:
+    return run_set(*args)
+
+
 def wilson(k: int, n: int) -> tuple[float, float]:
     """95 % Wilson score interval of a proportion ``k / n``."""
     if n == 0:
@@ -114,8 +119,35 @@ BEGIN = "<!-- stmmae-spread:begin -->"
 END = "<!-- stmmae-spread:end -->"
 
 
-def report(results: list[SetResult], flights: int) -> list[str]:
-    """The section: one row per set, then the pooled goals and the spread a set shows."""
+def _pooled_rows(results: list[SetResult], label_suffix: str) -> list[str]:
+    """Rows of the pooled table (one per rate goal) over ``results``."""
+    rows = []
+    goals = (
+        ("single faults isolated >= 99 %", vr.GOALS["single"], "singles_ok", "singles"),
+        ("overlapping pairs both isolated >= 90 %", vr.GOALS["pair"], "pairs_ok", "pairs"),
+        ("stuck vs oscillating right >= 95 %", vr.GOALS["kind"], "kinds_ok", "faults"),
+    )
+    for label, goal, ok_key, n_key in goals:
+        k = sum(getattr(r, ok_key) for r in results)
+        n = sum(getattr(r, n_key) for r in results)
+        lo, hi = wilson(k, n)
+        missed = sum(
+            getattr(r, ok_key) < math.ceil(goal * getattr(r, n_key) - 1e-9) for r in results
+        )
+        expected = miss_chance(k / n, getattr(results[0], n_key), goal) if n else math.nan
+        rows.append(
+            f"| {label}{label_suffix} | {k}/{n} ({100.0 * k / n:.1f} %) | "
+            f"{100 * lo:.1f}-{100 * hi:.1f} % | {missed} of {len(results)} | "
+            f"{100.0 * expected:.0f} % |"
+        )
+    return rows
+
+
+def report(results: list[SetResult], flights: int, held_out: set[int] | None = None) -> list[str]:
+    """The section: one row per set, then the pooled goals and the spread a set shows
+    (``held_out``: the offsets of sets drawn after the configuration was last chosen, marked
+    and pooled apart as well)."""
+    held_out = held_out or set()
     offsets = ", ".join(str(r.offset) for r in results)
     lines = [
         BEGIN,
@@ -138,8 +170,9 @@ def report(results: list[SetResult], flights: int) -> list[str]:
     for r in results:
         d = r.stuck_delays
         delays = f"{np.median(d):.2f} / {np.percentile(d, 95):.2f}" if d else "-"
+        mark = " (held out)" if r.offset in held_out else ""
         lines.append(
-            f"| {r.offset} | {r.singles_ok}/{r.singles} | {r.pairs_ok}/{r.pairs} | "
+            f"| {r.offset}{mark} | {r.singles_ok}/{r.singles} | {r.pairs_ok}/{r.pairs} | "
             f"{r.kinds_ok}/{r.faults} | {delays} | {r.wrong} | {r.no_fault} |"
         )
     lines += [
@@ -148,23 +181,10 @@ def report(results: list[SetResult], flights: int) -> list[str]:
         "missing it at the pooled rate |",
         "|---|---|---|---|---|",
     ]
-    goals = (
-        ("single faults isolated >= 99 %", vr.GOALS["single"], "singles_ok", "singles"),
-        ("overlapping pairs both isolated >= 90 %", vr.GOALS["pair"], "pairs_ok", "pairs"),
-        ("stuck vs oscillating right >= 95 %", vr.GOALS["kind"], "kinds_ok", "faults"),
-    )
-    for label, goal, ok_key, n_key in goals:
-        k = sum(getattr(r, ok_key) for r in results)
-        n = sum(getattr(r, n_key) for r in results)
-        lo, hi = wilson(k, n)
-        missed = sum(
-            getattr(r, ok_key) < math.ceil(goal * getattr(r, n_key) - 1e-9) for r in results
-        )
-        expected = miss_chance(k / n, getattr(results[0], n_key), goal) if n else math.nan
-        lines.append(
-            f"| {label} | {k}/{n} ({100.0 * k / n:.1f} %) | {100 * lo:.1f}-{100 * hi:.1f} % | "
-            f"{missed} of {len(results)} | {100.0 * expected:.0f} % |"
-        )
+    lines += _pooled_rows(results, "")
+    kept = [r for r in results if r.offset in held_out]
+    if kept and len(kept) < len(results):
+        lines += _pooled_rows(kept, f", the {len(kept)} held-out sets")
     d = [v for r in results for v in r.stuck_delays]
     if d:
         goal = vr.GOALS["stuck_p95_s"] + vr.TIME_TOL_S
@@ -199,18 +219,29 @@ def main() -> int:
     ap.add_argument(
         "--write", action="store_true", help="also write the section into docs/validation.md"
     )
+    ap.add_argument(
+        "--held-out",
+        type=int,
+        action="append",
+        default=[],
+        help="a seed offset (also given to --seed-offset) drawn after the configuration was "
+        "last chosen: marked, and pooled apart as well (repeatable)",
+    )
+    ap.add_argument("--jobs", type=int, default=1, help="sets scored in parallel processes")
     args = ap.parse_args()
+    offsets = args.seed_offset or [10000]
     stmmae.warm_up()
-    results = []
-    for off in args.seed_offset or [10000]:
-        results.append(run_set(off, args.flights, args.cache))
-        r = results[-1]
-        print(
-            f"set {off}: singles {r.singles_ok}/{r.singles}, pairs {r.pairs_ok}/{r.pairs}, "
-            f"kinds {r.kinds_ok}/{r.faults}",
-            flush=True,
-        )
-    section = "\n".join(report(results, args.flights))
+    work = [(off, args.flights, args.cache) for off in offsets]
+    with multiprocessing.Pool(max(1, args.jobs)) as pool:
+        results = []
+        for r in pool.imap(_run_set_args, work):
+            results.append(r)
+            print(
+                f"set {r.offset}: singles {r.singles_ok}/{r.singles}, pairs "
+                f"{r.pairs_ok}/{r.pairs}, kinds {r.kinds_ok}/{r.faults}",
+                flush=True,
+            )
+    section = "\n".join(report(results, args.flights, set(args.held_out) & set(offsets)))
     print(section)
     if args.write:
         vr.write_section(section, BEGIN, END, after="<!-- stmmae-random:end -->")
