@@ -1445,8 +1445,7 @@ def _fault_reason(f: dict[str, Any]) -> str:
     if len(f["candidates"]) > 1:
         return f"fault: {which} not following its command (which one: not isolated yet)"
     return (
-        f"fault: {f['component']} not following its command (stuck or oscillating: pending)"
-        f"{notes}"
+        f"fault: {f['component']} not following its command (stuck or oscillating: pending){notes}"
     )
 
 
@@ -1558,13 +1557,17 @@ def _noise_reasons(config: StmmaeConfig, state: StmmaeState) -> list[str]:
     return [_noise_reason(ratio, config)] if ratio > config.noise_ratio_unknown else []
 
 
-def status_report(config: StmmaeConfig, state: StmmaeState) -> StatusReport:
+def status_report(
+    config: StmmaeConfig, state: StmmaeState, faults: list[dict[str, Any]] | None = None
+) -> StatusReport:
     """ "alert" while a fault is active; "unknown" while a measurement is outside the model's
     operating range or has been back inside for less than ``operating_range_settle_s`` (no new
     fault is detected then) or the innovations, smoothed, are above
     ``noise_ratio_unknown`` times the model's sensor noise; "watch" while a surface's fault
-    probability is above ``watch_probability`` without being confirmed; else "ok"."""
-    faults = active_faults(config, state)
+    probability is above ``watch_probability`` without being confirmed; else "ok".
+    ``faults``: :func:`active_faults` of ``state`` when the caller has them."""
+    if faults is None:
+        faults = active_faults(config, state)
     unknown = outside_operating_range(config, state) + _noise_reasons(config, state)
     if faults:
         return StatusReport("alert", tuple(_fault_reason(f) for f in faults) + tuple(unknown))
@@ -1578,9 +1581,12 @@ def status_report(config: StmmaeConfig, state: StmmaeState) -> StatusReport:
     return StatusReport("watch", tuple(watch)) if watch else StatusReport("ok")
 
 
-def diagnosis(config: StmmaeConfig, state: StmmaeState) -> Diagnosis:
+def diagnosis(
+    config: StmmaeConfig, state: StmmaeState, faults: list[dict[str, Any]] | None = None
+) -> Diagnosis:
     """Probabilities (per hypothesis and per surface), active faults and deflection estimates
-    at the last sample."""
+    at the last sample (``faults``: :func:`active_faults` of ``state`` when the caller has
+    them)."""
     dec = state_parts(config, state).decisions
     defl = {s: _deg(dec[h, kern.D_DEFL]) for h, s in enumerate(config.model.surfaces)}
     return Diagnosis(
@@ -1588,7 +1594,7 @@ def diagnosis(config: StmmaeConfig, state: StmmaeState) -> Diagnosis:
         detail={
             "probabilities": {h: _finite(p) for h, p in probabilities(config, state).items()},
             "surface_fault_probabilities": surface_probabilities(config, state),
-            "active_faults": active_faults(config, state),
+            "active_faults": active_faults(config, state) if faults is None else faults,
             "deflection_estimates_deg": defl,
             "outside_operating_range": outside_operating_range(config, state),
             "variant": config.variant,
@@ -1698,12 +1704,13 @@ def step(config: StmmaeConfig, state: StmmaeState, batch: Batch) -> tuple[Stmmae
         windows = np.concatenate([windows, row])
     vec.setflags(write=False)
     new_state = StmmaeState(version=STATE_VERSION, t_last_s=float(t[n - 1]), vector=vec)
+    faults = active_faults(config, new_state)
     outputs = StepOutputs(
         samples={name: samples[i] for i, name in enumerate(names)},
         health=[_health(row, config) for row in windows],
         events=_events(config, state, events),
-        diagnosis=diagnosis(config, new_state),
-        status=status_report(config, new_state),
+        diagnosis=diagnosis(config, new_state, faults),
+        status=status_report(config, new_state, faults),
     )
     return new_state, outputs
 
