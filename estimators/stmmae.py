@@ -470,6 +470,16 @@ class StmmaeConfig(EstimatorConfigModel):
         "level (detect_probability otherwise, and beside another fault): the group has raised "
         "the alert, so the choice of the half can wait for stronger evidence",
     )
+    half_needs_group_odds: bool = Field(
+        True,
+        strict=True,
+        description="with no surface in fault, a half of a split surface whose strongest "
+        "competitor is its twin is named only at group_isolation_odds before its group is "
+        "detected too, while the group can still be (group_onset_window_s from its onset; off: "
+        "at detect_probability until the group is detected): a half's odds against its twin "
+        "rest on the small term that separates the halves, and the first tenths of a second of "
+        "a fault can favour the wrong one; the group raises the alert meanwhile",
+    )
     group_half_evidence: bool = Field(
         True,
         strict=True,
@@ -680,6 +690,7 @@ def _kernel_vector(config: StmmaeConfig) -> FloatArray:
     cfg[kern.CFG_KIND_TWIN] = 1.0 if config.fault_kind_twin_correction else 0.0
     cfg[kern.CFG_GROUP] = 1.0 if config.group_detection else 0.0
     cfg[kern.CFG_GROUP_ISO] = config.group_isolation_odds
+    cfg[kern.CFG_HALF_GROUP_ODDS] = 1.0 if config.half_needs_group_odds else 0.0
     cfg[kern.CFG_GROUP_HALF_EVIDENCE] = 1.0 if config.group_half_evidence else 0.0
     cfg[kern.CFG_GROUP_HOLD_S] = config.group_hold_s
     cfg[kern.CFG_GROUP_HOLD_ACTIVE_S] = config.group_hold_while_active_s

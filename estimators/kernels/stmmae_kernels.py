@@ -88,7 +88,10 @@ CFG_GROUP_HALF_EVIDENCE = 36  # 1: a half of a detected group is also named on t
 CFG_KIND_WAIT_S = 37  # longest wait of a kind span's end for a fault whose onset lies inside it
 CFG_DEFL_VAR_CAP = 38  # largest posterior variance of a deflection a filter contributes (rad^2)
 CFG_RANGE_SETTLE_S = 39  # no new detection for this long after a sample outside the range
-CFG_LEN = 40
+CFG_HALF_GROUP_ODDS = (
+    40  # 1: with no fault in place a half needs CFG_GROUP_ISO, group raised or not
+)
+CFG_LEN = 41
 COLLINEAR_STEPS = 20  # model steps over which a deflection's effect on the measurements is taken
 
 KIND_BLOCK_S = 0.05  # the kind test reads the deflection estimate as means over 0.05 s blocks
@@ -953,8 +956,8 @@ def _decide(
     Detection needs, held together for ``hold`` (:func:`detection_hold`): the marginal
     probability ``prob`` above ``CFG_DETECT_P`` and the isolation odds ``iso`` (the surface's
     probability of being the only new fault against its strongest competitor's) above
-    ``iso_level`` (``CFG_DETECT_P``, ``CFG_GROUP_ISO`` while the surface's group is detected and
-    no other surface is in fault, infinite while outside the operating range, less than
+    ``iso_level`` (``CFG_DETECT_P``, ``CFG_GROUP_ISO`` while the surface's group is detected, or
+    with ``CFG_HALF_GROUP_ODDS`` for a half whether it is or not, and no other surface is in fault, infinite while outside the operating range, less than
     ``CFG_RANGE_SETTLE_S`` back inside it, or while a fault ends), the smoothed deflection
     estimate more than ``CFG_MIN_ERR`` from the command, and at the end the log-likelihood
     ratio between the nested families (:func:`_relevant_loglik`) summed over the run at least
@@ -1697,6 +1700,7 @@ def _bank_kernel(
     rel_base = np.empty(ns)
     p_new = np.empty(ns)
     iso = np.empty(ns)
+    rival = np.empty(ns, dtype=np.int64)  # the strongest competitor of each surface's odds
     best_in = np.full(ns, -1, dtype=np.int64)
     probs = st[lay_probs : lay_probs + nh]
     u_last = st[lay_u : lay_u + m]
@@ -1844,9 +1848,11 @@ def _bank_kernel(
         # the other surfaces not in fault, on the probabilities of "it is the only new fault"
         for g in range(ns):
             comp = 0.0
+            rival[g] = -1
             for o in range(ns):
                 if o != g and dec[o, D_ACTIVE] != 1.0 and p_new[o] > comp:
                     comp = p_new[o]
+                    rival[g] = o
             tot = p_new[g] + comp
             iso[g] = p_new[g] / tot if tot > 0.0 else 0.0
         n_active_before = 0
@@ -1895,9 +1901,23 @@ def _bank_kernel(
             # the group's detection: while the filter freeing both halves holds the mass, both
             # single filters sit at their probability floor, which erases the evidence between
             # them (a fast oscillation of one half, which its own filter follows worse)
+            # (with CFG_HALF_GROUP_ODDS the stronger odds hold before the group's detection too,
+            # while the half's strongest competitor is its twin and the group can still be
+            # detected, CFG_GROUP_WINDOW_S from its onset: its odds against the twin rest on the
+            # small term that separates them, and the first tenths of a second of a fault can
+            # favour the wrong half; the group raises the alert meanwhile)
             iso_level = cfg[CFG_DETECT_P]
             iso_h = iso[h]
             lead = min(h, twin_of[h])
+            if (
+                groups_on
+                and lead >= 0
+                and n_active_before == 0
+                and cfg[CFG_HALF_GROUP_ODDS] != 0.0
+                and rival[h] == twin_of[h]
+                and not tk - gdec[lead, G_ONSET_T] > cfg[CFG_GROUP_WINDOW_S] + HOLD_TOL_S
+            ):
+                iso_level = max(iso_level, cfg[CFG_GROUP_ISO])
             if groups_on and lead >= 0 and gdec[lead, G_ACTIVE] == 1.0 and n_active_before == 0:
                 iso_level = max(iso_level, cfg[CFG_GROUP_ISO])
                 if cfg[CFG_GROUP_HALF_EVIDENCE] != 0.0:

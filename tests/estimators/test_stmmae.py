@@ -1887,6 +1887,37 @@ def test_no_group_is_raised_while_two_surfaces_are_in_fault() -> None:
 
 
 @pytest.mark.parametrize(
+    ("seed", "half"), [(591008, "aileron_left"), (511011, "elevator_right")], ids=["ail", "elev"]
+)
+def test_a_half_is_named_at_the_group_odds_before_its_group_too(seed: int, half: str) -> None:
+    """Randomized single-fault flights, a sine on one half (591008: left aileron, 2.3 deg, period
+    0.91 s; 511011: right elevator, 4.9 deg, period 3.61 s): with ``half_needs_group_odds`` off,
+    the twin half passes the detection odds first and stays in fault beside the true half; on,
+    the group is raised first and handed to the true half, and the twin is never detected."""
+    sc = random_scenario(seed, "single")
+    t, ch, _ = sc.simulate()
+    fault = sc.faults[0]
+    assert fault.surface == half
+    model = reference_model(1.0 / sc.sample_rate_hz, sc.airspeed_m_s)
+    group = half.rpartition("_")[0]
+    named = {}
+    for on in (False, True):
+        config = stmmae.parse_config({"model": model, "half_needs_group_odds": on})
+        _, _, _, events, _ = run(config, t, ch)
+        named[on] = [
+            e.detail["component"]
+            for e in events
+            if e.kind == "fault_detected" and fault.start_s <= e.t_s <= fault.end_s
+        ]
+        if on:
+            handed = [e for e in events if e.detail.get("isolated_as")]
+            assert [e.detail["isolated_as"] for e in handed] == [half]
+    twin = next(s for s in named[False] if s != half)
+    assert named[False][:2] == [twin, half]
+    assert named[True] == [group, half]
+
+
+@pytest.mark.parametrize(
     ("seed", "kind"), [(392008, "stuck"), (392000, "oscillating")], ids=["stuck", "oscillating"]
 )
 def test_a_group_never_narrowed_to_its_half_gets_a_kind(seed: int, kind: str) -> None:
