@@ -57,6 +57,14 @@ def run(config, t, ch, splits=()):
     return state, joined, health, events, out
 
 
+def same_events_when_split(config, t, ch, events, split: int) -> bool:
+    """The events of one batch equal those of two batches split at sample ``split``."""
+    _, _, _, split_events, _ = run(config, t, ch, splits=(split,))
+    return [(e.t_s, e.kind, e.detail) for e in split_events] == [
+        (e.t_s, e.kind, e.detail) for e in events
+    ]
+
+
 # ----------------------------------------------------------------------------- references
 def measured(config, ch, k):
     """``y_k - H x*`` and the input driving the step into sample k, ``u_{k-1} - u*`` (the
@@ -1132,11 +1140,9 @@ def test_a_kind_judged_beside_a_fault_in_place_says_so(flight) -> None:
     reasons = {r.split()[1]: r for r in out.status.reasons if r.startswith("fault:")}
     assert "beside rudder in fault: less certain" in reasons["aileron_left"]
     assert "beside" not in reasons["rudder"]
-    split = int(np.searchsorted(t, cls["aileron_left"].t_s - 1.0))
-    _, _, _, split_events, _ = run(config, t, ch, splits=(split,))
-    assert [(e.t_s, e.kind, e.detail) for e in split_events] == [
-        (e.t_s, e.kind, e.detail) for e in events
-    ]
+    assert same_events_when_split(
+        config, t, ch, events, int(np.searchsorted(t, cls["aileron_left"].t_s - 1.0))
+    )
     t1, ch1, _ = flight
     _, _, _, single, out1 = run(config, t1, ch1)
     assert single and all(e.detail["kind_beside"] == [] for e in single)
@@ -1172,11 +1178,9 @@ def test_both_halves_of_a_split_surface_in_fault_say_one_may_not_be(flight) -> N
     reasons = [r for r in out.status.reasons if r.startswith("fault:")]
     assert len(reasons) == 2
     assert all("in fault too" in r and "one of the two may not be in fault" in r for r in reasons)
-    split = int(np.searchsorted(t, det["aileron_right"].t_s - 0.5))
-    _, _, _, split_events, _ = run(config, t, ch, splits=(split,))
-    assert [(e.t_s, e.kind, e.detail) for e in split_events] == [
-        (e.t_s, e.kind, e.detail) for e in events
-    ]
+    assert same_events_when_split(
+        config, t, ch, events, int(np.searchsorted(t, det["aileron_right"].t_s - 0.5))
+    )
     t1, ch1, _ = flight
     _, _, _, single, out1 = run(config, t1, ch1)
     assert single and all(e.detail["twin_in_fault"] is None for e in single)
@@ -1206,11 +1210,7 @@ def test_a_kind_span_waits_for_a_detection_whose_onset_lies_inside_it() -> None:
         cls = {e.detail["component"]: e for e in events if e.kind == "fault_classified"}
         found[wait] = (det, cls["aileron_left"])
         if wait:
-            split = int(np.searchsorted(t, 8.52))
-            _, _, _, split_events, _ = run(config, t, ch, splits=(split,))
-            assert [(e.t_s, e.kind, e.detail) for e in split_events] == [
-                (e.t_s, e.kind, e.detail) for e in events
-            ]
+            assert same_events_when_split(config, t, ch, events, int(np.searchsorted(t, 8.52)))
     det, left = found[True]
     onset_right = next(
         e for e in events if e.kind == "fault_detected" and e.detail["component"] == "aileron_right"
