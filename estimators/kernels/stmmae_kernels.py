@@ -88,9 +88,7 @@ CFG_GROUP_HALF_EVIDENCE = 36  # 1: a half of a detected group is also named on t
 CFG_KIND_WAIT_S = 37  # longest wait of a kind span's end for a fault whose onset lies inside it
 CFG_DEFL_VAR_CAP = 38  # largest posterior variance of a deflection a filter contributes (rad^2)
 CFG_RANGE_SETTLE_S = 39  # no new detection for this long after a sample outside the range
-CFG_HALF_GROUP_ODDS = (
-    40  # 1: with no fault in place a half needs CFG_GROUP_ISO, group raised or not
-)
+CFG_HALF_GROUP_ODDS = 40  # 1: a half against its twin needs CFG_GROUP_ISO before its group too
 CFG_LEN = 41
 COLLINEAR_STEPS = 20  # model steps over which a deflection's effect on the measurements is taken
 
@@ -956,8 +954,9 @@ def _decide(
     Detection needs, held together for ``hold`` (:func:`detection_hold`): the marginal
     probability ``prob`` above ``CFG_DETECT_P`` and the isolation odds ``iso`` (the surface's
     probability of being the only new fault against its strongest competitor's) above
-    ``iso_level`` (``CFG_DETECT_P``, ``CFG_GROUP_ISO`` while the surface's group is detected, or
-    with ``CFG_HALF_GROUP_ODDS`` for a half whether it is or not, and no other surface is in fault, infinite while outside the operating range, less than
+    ``iso_level`` (``CFG_DETECT_P``; ``CFG_GROUP_ISO`` while no other surface is in fault and
+    the surface's group is detected, or with ``CFG_HALF_GROUP_ODDS`` before it is, while its
+    strongest competitor is its twin; infinite while outside the operating range, less than
     ``CFG_RANGE_SETTLE_S`` back inside it, or while a fault ends), the smoothed deflection
     estimate more than ``CFG_MIN_ERR`` from the command, and at the end the log-likelihood
     ratio between the nested families (:func:`_relevant_loglik`) summed over the run at least
