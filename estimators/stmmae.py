@@ -475,10 +475,10 @@ class StmmaeConfig(EstimatorConfigModel):
         strict=True,
         description="with no surface in fault, a half of a split surface whose strongest "
         "competitor is its twin is named only at group_isolation_odds before its group is "
-        "detected too, while the group can still be (group_onset_window_s from its onset; off: "
-        "at detect_probability until the group is detected): a half's odds against its twin "
-        "rest on the small term that separates the halves, and the first tenths of a second of "
-        "a fault can favour the wrong one; the group raises the alert meanwhile",
+        "detected too (off: at detect_probability until the group is detected): a half's odds "
+        "against its twin rest on the small term that separates the halves, and the first "
+        "tenths of a second of a fault can favour the wrong one; the group raises the alert "
+        "meanwhile",
     )
     group_half_evidence: bool = Field(
         True,
@@ -1425,8 +1425,9 @@ def _events(config: StmmaeConfig, state: StmmaeState, rows: FloatArray) -> list[
     for row in rows:
         ev = _event(row, config)
         d = ev.detail
-        d["kind_beside"] = kind_beside(list(in_fault.values()), d)
-        d["twin_in_fault"] = twin_in_fault(config, list(in_fault.values()), d)
+        now = list(in_fault.values())
+        d["kind_beside"] = kind_beside(now, d)
+        d["twin_in_fault"] = twin_in_fault(config, now, d)
         if ev.kind == "fault_detected":
             in_fault[d["component"]] = d
         elif ev.kind == "fault_cleared":

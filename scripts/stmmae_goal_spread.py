@@ -28,6 +28,7 @@ faults) has its own.
 
 from __future__ import annotations
 
+import functools
 import math
 import multiprocessing
 import sys
@@ -91,10 +92,6 @@ def run_set(offset: int, flights: int, cache: Path | None) -> SetResult:
         twins_both=sum(f.twins_both for f in recs),
         twins_one=sum(f.twins_one for f in recs),
     )
-
-
-def _run_set_args(args: tuple[int, int, Path | None]) -> SetResult:
-    return run_set(*args)
 
 
 def wilson(k: int, n: int) -> tuple[float, float]:
@@ -231,10 +228,10 @@ def main() -> int:
     args = ap.parse_args()
     offsets = args.seed_offset or [10000]
     stmmae.warm_up()
-    work = [(off, args.flights, args.cache) for off in offsets]
+    score = functools.partial(run_set, flights=args.flights, cache=args.cache)
     with multiprocessing.Pool(max(1, args.jobs)) as pool:
         results = []
-        for r in pool.imap(_run_set_args, work):
+        for r in pool.imap(score, offsets):
             results.append(r)
             print(
                 f"set {r.offset}: singles {r.singles_ok}/{r.singles}, pairs "

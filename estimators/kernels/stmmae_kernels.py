@@ -1901,25 +1901,17 @@ def _bank_kernel(
             # single filters sit at their probability floor, which erases the evidence between
             # them (a fast oscillation of one half, which its own filter follows worse)
             # (with CFG_HALF_GROUP_ODDS the stronger odds hold before the group's detection too,
-            # while the half's strongest competitor is its twin and the group can still be
-            # detected, CFG_GROUP_WINDOW_S from its onset: its odds against the twin rest on the
-            # small term that separates them, and the first tenths of a second of a fault can
-            # favour the wrong half; the group raises the alert meanwhile)
+            # while the half's strongest competitor is its twin: its odds against the twin rest
+            # on the small term that separates them, and the first tenths of a second of a
+            # fault can favour the wrong half; the group raises the alert meanwhile)
             iso_level = cfg[CFG_DETECT_P]
             iso_h = iso[h]
             lead = min(h, twin_of[h])
-            if (
-                groups_on
-                and lead >= 0
-                and n_active_before == 0
-                and cfg[CFG_HALF_GROUP_ODDS] != 0.0
-                and rival[h] == twin_of[h]
-                and not tk - gdec[lead, G_ONSET_T] > cfg[CFG_GROUP_WINDOW_S] + HOLD_TOL_S
-            ):
-                iso_level = max(iso_level, cfg[CFG_GROUP_ISO])
-            if groups_on and lead >= 0 and gdec[lead, G_ACTIVE] == 1.0 and n_active_before == 0:
-                iso_level = max(iso_level, cfg[CFG_GROUP_ISO])
-                if cfg[CFG_GROUP_HALF_EVIDENCE] != 0.0:
+            if groups_on and lead >= 0 and n_active_before == 0:
+                group_on = gdec[lead, G_ACTIVE] == 1.0
+                if group_on or (cfg[CFG_HALF_GROUP_ODDS] != 0.0 and rival[h] == twin_of[h]):
+                    iso_level = max(iso_level, cfg[CFG_GROUP_ISO])
+                if group_on and cfg[CFG_GROUP_HALF_EVIDENCE] != 0.0:
                     iso_h = max(iso_h, half_odds(gdec, lead, h))
             if outside or settling or ending:
                 iso_level = np.inf  # no odds pass: detection withheld (fault_ending)

@@ -4,6 +4,7 @@ miss chance the goal spread reports."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
 from pathlib import Path
@@ -88,6 +89,6 @@ def test_both_halves_in_fault_counts_the_spans_with_only_one_half_faulty() -> No
     assert vr.both_halves(sc, events, 60.0) == (2, 1)
     # the right half's fault begins within the span (at 14 s): both faulty
     early = (faults[0], SurfaceFault("aileron_right", 14.0, 40.0, "stuck", position_deg=6.0))
-    sc_early = FlightScenario(**{**sc.__dict__, "faults": early})
+    sc_early = dataclasses.replace(sc, faults=early)
     assert vr.both_halves(sc_early, events, 60.0) == (2, 0)
     assert vr.both_halves(sc, events[:1], 60.0) == (0, 0)
